@@ -58,6 +58,7 @@ def run_render(args) -> int:
     overlay = draw_boxes(result.rgb, result.boxes, world.class_names)
     cv2.imwrite(str(out / "view_boxes.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
     camera.save(out / "camera.json")
-    print(f"{out / 'view.png'}: {len(result.boxes)} people labelled "
-          f"({', '.join(f'{n}={sum(b.class_id == i for b in result.boxes)}' for i, n in enumerate(world.class_names))})")
+    counts = ", ".join(f"{name}={sum(b.class_id == i for b in result.boxes)}"
+                       for i, name in enumerate(world.class_names))
+    print(f"{out / 'view.png'}: {len(result.boxes)} people labelled ({counts})")
     return 0
