@@ -8,7 +8,8 @@ kept proportional to what is visible: a solid is only intersected with the rays 
 projected bounding box, and only tested as a shadow caster for the points inside the projection
 of its shadow volume.
 
-Instance ids: a pixel belongs to the person that covers the majority of its samples. A person's
+Instance ids: a pixel belongs to the person that covers the most of its samples if that is at least
+half of them (so a half-covered pixel counts as the person's for even supersampling). A person's
 box is the pixel-edge extent of its pixels (x0, y0 inclusive, x1, y1 exclusive, in pixels); people
 with fewer than ``min_visible_px`` pixels (including fully occluded ones) get no box.
 """
@@ -245,10 +246,10 @@ def render(world, camera: Camera, cam_from_world, t: float = 0.0, supersample: i
         for j in range(s * s):
             cand = samples[:, j]
             count = (samples == cand[:, None]).sum(axis=-1)
-            better = count > best_count
+            better = (count > best_count) & (cand != 0)
             best[better] = cand[better]
             best_count[better] = count[better]
-        instance_ids[touched] = np.where(2 * best_count > s * s, best, 0)
+        instance_ids[touched] = np.where(2 * best_count >= s * s, best, 0)
 
     classes = {p.instance: p.class_id for p in world.people}
     boxes: list[Box] = []
