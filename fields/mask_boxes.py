@@ -10,9 +10,11 @@ pixels, masks are soft at their edges, and neighbours can touch, so the rules ar
 3. Class: the class with the largest summed probability over the blob. If a second class holds at
    least ``class_split_share`` of the blob's class mass, the blob is split by per-pixel argmax
    class (two touching people of different classes).
-4. Touching people of one class: a blob is split when its foreground probability has two or more
-   peaks, at least ``min_peak_separation_px`` apart, with a dip of at least ``peak_dip`` between
-   them along the straight line joining them; pixels go to the peak they flow to (watershed).
+4. Touching people of one class: a blob is split when its (lightly smoothed) foreground
+   probability has two or more peaks, at least ``min_peak_separation_px`` apart, with a dip of at
+   least ``peak_dip`` in the raw probability along the straight line between every pair; pixels
+   go to the peak they flow to (watershed). A hard 0/1 mask therefore never splits, and a split
+   that would leave a piece under ``min_area_px`` is not made.
 5. Area: blobs with fewer than ``min_area_px`` pixels are dropped.
 6. Border: a blob touching the image border is dropped when an expected person size is known
    (``expected_size_px``, a person's largest extent in pixels at that range) and the blob's
@@ -143,14 +145,20 @@ def _split_by_peaks(part: np.ndarray, fg: np.ndarray, rules: BoxRules) -> list[n
     if len(seeds) < 2:
         return [part]
     # A real split needs a dip between the seeds along the line joining them.
+    # The dip is measured on the raw probability: a hard (0/1) mask never splits, however thin
+    # its limbs; only a field that itself was unsure between two people does.
+    raw = np.where(part, fg, 0.0)
     good = [seeds[0]]
     for q in seeds[1:]:
-        if any(_dip(smooth, p, q) >= rules.peak_dip for p in good):
+        if all(_dip(raw, p, q) >= rules.peak_dip for p in good):
             good.append(q)
     if len(good) < 2:
         return [part]
     owner = _flood(smooth, part, good)
-    return [owner == k for k in range(1, len(good) + 1) if (owner == k).any()]
+    pieces = [owner == k for k in range(1, len(good) + 1)]
+    if any(piece.sum() < rules.min_area_px for piece in pieces):
+        return [part]
+    return pieces
 
 
 def _flood(height: np.ndarray, part: np.ndarray, seeds: list[np.ndarray]) -> np.ndarray:
