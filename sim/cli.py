@@ -25,6 +25,8 @@ def register(subparsers) -> None:
     r.add_argument("--height", type=int, default=480)
     r.add_argument("--hfov", type=float, default=70.0, help="horizontal field of view, deg")
     r.add_argument("--supersample", type=int, default=3, help="samples per pixel side")
+    r.add_argument("--texture-size", type=int, default=4096,
+                   help="ground texture tile side in texels, a power of two (4096: 2.5 cm texels, 102 m tile)")
     r.add_argument("--out", type=Path, required=True, help="output folder")
     r.set_defaults(func=run_render)
 
@@ -44,7 +46,8 @@ def run_render(args) -> int:
     if args.width < 8 or args.height < 8:
         raise ValueError(f"image size must be at least 8x8, got {args.width}x{args.height}")
     camera = Camera.from_fov(args.width, args.height, args.hfov, Mount(pitch_deg=args.pitch))
-    world = make_world(seed=args.seed, dynamic=args.dynamic)
+    world = make_world(seed=args.seed, dynamic=args.dynamic, texture_size=args.texture_size,
+                       texel_m=0.025 * 4096 / args.texture_size)
     cam_from_world = orbit_pose(args.altitude, args.radius, args.pitch, args.azimuth)
     t0 = time.perf_counter()
     result = world.render(camera, cam_from_world, t=args.time, supersample=args.supersample)

@@ -8,7 +8,8 @@ from agent.cli import main
 
 def test_sim_render_writes_image_labels_and_overlay(tmp_path):
     rc = main(["-q", "sim", "render", "--altitude", "15", "--radius", "10", "--pitch", "-60",
-               "--width", "96", "--height", "72", "--supersample", "2", "--out", str(tmp_path)])
+               "--width", "96", "--height", "72", "--supersample", "2", "--texture-size", "512",
+               "--out", str(tmp_path)])
     assert rc == 0
     for name in ("view.png", "view.txt", "view_boxes.png", "classes.txt", "camera.json"):
         assert (tmp_path / name).is_file()
