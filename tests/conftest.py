@@ -1,9 +1,15 @@
 """Shared fixtures: small worlds and cameras (tests use images <= 128 px)."""
 
-import pytest
+import os
 
-from sim.world import make_world
-from telemetry.camera import Camera
+# Before torch is imported anywhere: spinning OpenMP threads make torch 2-13x slower when another
+# process holds a core (measured on these 2-core machines).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pytest  # noqa: E402
+
+from sim.world import make_world  # noqa: E402
+from telemetry.camera import Camera  # noqa: E402
 
 
 @pytest.fixture(scope="session")

@@ -1,0 +1,311 @@
+"""K-Planes for dynamic scenes: stock (six planes) and the paper's extended variant.
+
+Coordinates: points are normalised to the scene box, ``x01`` in [0, 1]^3, and time to ``t01`` in
+[0, 1] over the flight. A plane (a, b) is a learnable grid of features over two of the four
+coordinates (x, y, z, t); a point reads it by bilinear interpolation (``F.grid_sample``,
+``align_corners=True``: grid point 0 at coordinate 0 and point R - 1 at coordinate 1).
+
+Stock K-Planes (Fridovich-Keil et al.): six planes xy, xz, yz, xt, yt, zt per scale; a point's
+feature is the Hadamard product over the six planes, concatenated over scales. Time planes start
+at 1 (a static scene needs no change over time), spatial planes uniform in [0.1, 0.5].
+
+Extended K-Planes (UAV-Sim): per scale three *static* spatial planes ``C_s`` and six *dynamic*
+planes ``C_d``, multiplied separately into ``f_s`` and ``f_d``; each dynamic time plane stores
+D + 1 channels, the extra one a mask value (is this point part of a moving object now?). An MLP
+fuses ``f_s``, ``f_d`` and the three mask values into a D-dim feature. Training adds
+``L_cos = sum_c |cos(f_s,c, f_d,c)|`` over the spatial planes c (keeps the two sets of planes
+apart) and gates gradients by the box mask: pixels on static background update only the static
+planes, pixels inside the boxes of moving people only the dynamic planes (:class:`GateGrad`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#: coordinate index pairs of the spatial planes (x=0, y=1, z=2) and the time planes (t=3)
+SPACE_PLANES = ((0, 1), (0, 2), (1, 2))
+TIME_PLANES = ((0, 3), (1, 3), (2, 3))
+
+
+class GateGrad(torch.autograd.Function):
+    """Identity forward; backward multiplies the incoming gradient by ``gate`` (broadcast).
+
+    ``gate`` is 1 where gradients may flow and 0 where they are blocked (values in between scale
+    them). It receives no gradient itself.
+    """
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, gate: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(gate)
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (gate,) = ctx.saved_tensors
+        return grad * gate.to(grad.dtype), None
+
+
+def gate_grad(x: torch.Tensor, gate: torch.Tensor) -> torch.Tensor:
+    """Pass ``x`` unchanged; let only ``gate``-weighted gradients back (see :class:`GateGrad`)."""
+    return GateGrad.apply(x, gate)
+
+
+def cosine_separation(f_static: list[torch.Tensor], f_dynamic: list[torch.Tensor],
+                      eps: float = 1e-8) -> torch.Tensor:
+    """``L_cos``: sum over planes c of the mean over points of ``|cos(f_s,c, f_d,c)|``.
+
+    Each list holds one (N, D) tensor per spatial plane (static and dynamic, same order).
+    """
+    if len(f_static) != len(f_dynamic):
+        raise ValueError("static and dynamic feature lists must pair up plane by plane")
+    total = torch.zeros((), dtype=torch.float32, device=f_static[0].device if f_static else None)
+    for a, b in zip(f_static, f_dynamic, strict=True):
+        cos = F.cosine_similarity(a.float(), b.float(), dim=-1, eps=eps)
+        total = total + cos.abs().mean()
+    return total
+
+
+def sample_plane(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Bilinear features (N, C) of ``plane`` (1, C, Rv, Ru) at coordinates ``u, v`` in [0, 1]."""
+    grid = torch.stack([u * 2 - 1, v * 2 - 1], dim=-1).view(1, -1, 1, 2).to(plane.dtype)
+    return F.grid_sample(plane, grid, mode="bilinear", align_corners=True).view(plane.shape[1], -1).t()
+
+
+def sample_plane_reference(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Slow, explicit bilinear interpolation; the reference :func:`sample_plane` is tested against."""
+    _, c, rv, ru = plane.shape
+    x = u.clamp(0, 1) * (ru - 1)
+    y = v.clamp(0, 1) * (rv - 1)
+    x0 = x.floor().long().clamp(0, max(ru - 2, 0))
+    y0 = y.floor().long().clamp(0, max(rv - 2, 0))
+    x1 = (x0 + 1).clamp(max=ru - 1)
+    y1 = (y0 + 1).clamp(max=rv - 1)
+    fx, fy = (x - x0).unsqueeze(1), (y - y0).unsqueeze(1)
+    p = plane[0]
+    return (p[:, y0, x0].t() * (1 - fx) * (1 - fy) + p[:, y0, x1].t() * fx * (1 - fy)
+            + p[:, y1, x0].t() * (1 - fx) * fy + p[:, y1, x1].t() * fx * fy)
+
+
+@dataclass
+class KPlanesConfig:
+    """Sizes of a K-Planes encoding. Resolutions are grid points along (x, y, z) per scale."""
+
+    #: spatial base resolution (paper: 128, 128, 64 — z halved, cameras look down) and multipliers
+    base_resolution: tuple[int, int, int] = (32, 32, 16)
+    multipliers: tuple[int, ...] = (1, 2, 4)
+    #: time resolution: half the number of frames (paper)
+    time_resolution: int = 16
+    features: int = 16
+    extended: bool = False
+    init_low: float = 0.1
+    init_high: float = 0.5
+
+    def resolutions(self) -> list[tuple[int, int, int]]:
+        return [tuple(int(r * m) for r in self.base_resolution) for m in self.multipliers]
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def _plane(channels: int, rv: int, ru: int, value: float | None, low: float, high: float) -> nn.Parameter:
+    p = torch.empty(1, channels, rv, ru)
+    if value is None:
+        p.uniform_(low, high)
+    else:
+        p.fill_(value)
+    return nn.Parameter(p)
+
+
+class KPlanesEncoding(nn.Module):
+    """Stock or extended K-Planes features of (x01, t01); see the module docstring.
+
+    ``forward`` returns a dict: ``features`` (N, out_dim) always; for the extended variant also
+    ``mask_values`` (N, 3 * scales) raw mask channels of the time planes, and the per-plane
+    spatial features ``static_space``/``dynamic_space`` (lists of (N, D)) for ``L_cos``.
+    With ``dynamic_gate`` (N,) in [0, 1] (1 = pixel inside a moving person's box) gradients of
+    static planes are scaled by ``1 - gate`` and of dynamic planes by ``gate``.
+    """
+
+    def __init__(self, config: KPlanesConfig):
+        super().__init__()
+        self.config = config
+        d, lo, hi = config.features, config.init_low, config.init_high
+        T = config.time_resolution
+        self.static_planes = nn.ParameterList()
+        self.dynamic_planes = nn.ParameterList()
+        for res in config.resolutions():
+            if config.extended:
+                for a, b in SPACE_PLANES:
+                    self.static_planes.append(_plane(d, res[b], res[a], None, lo, hi))
+            for a, b in SPACE_PLANES:
+                self.dynamic_planes.append(_plane(d, res[b], res[a], None, lo, hi))
+            extra = 1 if config.extended else 0
+            for a, _ in TIME_PLANES:
+                p = _plane(d + extra, T, res[a], 1.0, lo, hi)
+                if extra:
+                    with torch.no_grad():
+                        p[:, d:] = 0.0  # mask logit 0 = undecided
+                self.dynamic_planes.append(p)
+
+    @property
+    def n_scales(self) -> int:
+        return len(self.config.multipliers)
+
+    @property
+    def out_dim(self) -> int:
+        per_scale = self.config.features * (2 if self.config.extended else 1)
+        return per_scale * self.n_scales + (3 * self.n_scales if self.config.extended else 0)
+
+    def space_planes(self) -> list[nn.Parameter]:
+        """All spatial planes (static and dynamic) — for total variation."""
+        out = list(self.static_planes)
+        for s in range(self.n_scales):
+            out += list(self.dynamic_planes[6 * s: 6 * s + 3])
+        return out
+
+    def time_planes(self) -> list[nn.Parameter]:
+        return [self.dynamic_planes[6 * s + 3 + k] for s in range(self.n_scales) for k in range(3)]
+
+    def forward(self, x01: torch.Tensor, t01: torch.Tensor, dynamic_gate: torch.Tensor | None = None) -> dict:
+        x = x01.float().clamp(0.0, 1.0)
+        t = t01.float().reshape(-1).clamp(0.0, 1.0)
+        coords = torch.cat([x, t[:, None]], dim=-1)
+        d = self.config.features
+        feats, masks, stat_space, dyn_space = [], [], [], []
+        for s in range(self.n_scales):
+            dyn = None
+            for k, (a, b) in enumerate(SPACE_PLANES + TIME_PLANES):
+                f = sample_plane(self.dynamic_planes[6 * s + k], coords[:, a], coords[:, b])
+                if k >= 3 and self.config.extended:
+                    masks.append(f[:, d:])
+                    f = f[:, :d]
+                if k < 3 and self.config.extended:
+                    dyn_space.append(f)
+                dyn = f if dyn is None else dyn * f
+            if self.config.extended:
+                stat = None
+                for k, (a, b) in enumerate(SPACE_PLANES):
+                    f = sample_plane(self.static_planes[3 * s + k], coords[:, a], coords[:, b])
+                    stat_space.append(f)
+                    stat = f if stat is None else stat * f
+                if dynamic_gate is not None:
+                    g = dynamic_gate.reshape(-1, 1).to(stat.dtype)
+                    stat = gate_grad(stat, 1.0 - g)
+                    dyn = gate_grad(dyn, g)
+                feats += [stat, dyn]
+            else:
+                feats.append(dyn)
+        out = {"features": torch.cat(feats + masks, dim=-1)}
+        if self.config.extended:
+            out["mask_values"] = torch.cat(masks, dim=-1)
+            out["static_space"] = stat_space
+            out["dynamic_space"] = dyn_space
+        return out
+
+    # ---- regularisers (K-Planes) ----------------------------------------------------------
+    def total_variation(self) -> torch.Tensor:
+        """Mean squared difference of neighbouring grid points on the spatial planes."""
+        tv = torch.zeros(())
+        for p in self.space_planes():
+            tv = tv + (p[..., 1:, :] - p[..., :-1, :]).pow(2).mean() + (p[..., :, 1:] - p[..., :, :-1]).pow(2).mean()
+        return tv
+
+    def time_smoothness(self) -> torch.Tensor:
+        """Mean squared second difference along t of the time planes (smooth motion)."""
+        sm = torch.zeros(())
+        for p in self.time_planes():
+            q = p[:, : self.config.features]
+            if q.shape[2] >= 3:
+                sm = sm + (q[:, :, 2:] - 2 * q[:, :, 1:-1] + q[:, :, :-2]).pow(2).mean()
+        return sm
+
+    def time_l1(self) -> torch.Tensor:
+        """Mean |1 - value| of the time planes: static content keeps them at 1."""
+        l1 = torch.zeros(())
+        for p in self.time_planes():
+            l1 = l1 + (1.0 - p[:, : self.config.features]).abs().mean()
+        return l1
+
+
+@dataclass
+class KPlanesFieldConfig:
+    aabb_lo: tuple[float, float, float] = (-1.0, -1.0, -1.0)
+    aabb_hi: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    planes: KPlanesConfig = field(default_factory=KPlanesConfig)
+    hidden: int = 64
+    geo_features: int = 15
+    n_images: int = 1
+    appearance_dim: int = 8
+    n_classes: int = 3
+    density_bias: float = -1.0
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> KPlanesFieldConfig:
+        d = dict(d)
+        p = dict(d.pop("planes"))
+        p["base_resolution"] = tuple(p["base_resolution"])
+        p["multipliers"] = tuple(p["multipliers"])
+        d["aabb_lo"], d["aabb_hi"] = tuple(d["aabb_lo"]), tuple(d["aabb_hi"])
+        return cls(planes=KPlanesConfig(**p), **d)
+
+
+class KPlanesField(nn.Module):
+    """Density, colour and mask logits at world points and times (same outputs as the static field).
+
+    ``times01`` (N,) is the scene time normalised over the flight. For the extended variant the
+    output also carries ``dynamic_prob`` (N,) from the time planes' mask channel and the per-plane
+    features for ``L_cos`` (``static_space``, ``dynamic_space``).
+    """
+
+    def __init__(self, config: KPlanesFieldConfig):
+        super().__init__()
+        self.config = config
+        self.register_buffer("lo", torch.tensor(config.aabb_lo, dtype=torch.float32))
+        self.register_buffer("hi", torch.tensor(config.aabb_hi, dtype=torch.float32))
+        self.encoding = KPlanesEncoding(config.planes)
+        h, d = config.hidden, config.planes.features
+        enc_dim = self.encoding.out_dim
+        if config.planes.extended:
+            # fuse f_s, f_d and the mask values into one D-dim feature, as the paper does
+            self.fuse = nn.Sequential(nn.Linear(enc_dim, h), nn.ReLU(), nn.Linear(h, d * self.encoding.n_scales))
+            enc_dim = d * self.encoding.n_scales
+        self.geo_mlp = nn.Sequential(nn.Linear(enc_dim, h), nn.ReLU(), nn.Linear(h, 1 + config.geo_features))
+        self.appearance = nn.Embedding(max(1, config.n_images), config.appearance_dim)
+        nn.init.zeros_(self.appearance.weight)
+        self.color_mlp = nn.Sequential(nn.Linear(config.geo_features + config.appearance_dim, h), nn.ReLU(),
+                                       nn.Linear(h, h), nn.ReLU(), nn.Linear(h, 3))
+        self.mask_head = nn.Linear(config.geo_features, config.n_classes + 1)
+
+    def normalise(self, points: torch.Tensor) -> torch.Tensor:
+        return (points - self.lo) / (self.hi - self.lo)
+
+    def forward(self, points, times01, dirs=None, image_idx=None, dynamic_gate=None, with_mask=True) -> dict:
+        x01 = self.normalise(points)
+        inside = ((x01 >= 0) & (x01 <= 1)).all(dim=-1)
+        enc = self.encoding(x01, times01, dynamic_gate)
+        feat = enc["features"]
+        if self.config.planes.extended:
+            feat = self.fuse(feat)
+        hgeo = self.geo_mlp(feat).float()
+        sigma = torch.exp(torch.clamp(hgeo[:, 0] + self.config.density_bias, max=15.0)) * inside
+        geo = hgeo[:, 1:]
+        if image_idx is None:
+            app = self.appearance.weight.mean(0, keepdim=True).expand(points.shape[0], -1)
+        else:
+            app = self.appearance(image_idx)
+        rgb = torch.sigmoid(self.color_mlp(torch.cat([geo, app], dim=-1)).float())
+        out = {"sigma": sigma, "rgb": rgb}
+        if with_mask:
+            out["mask_logits"] = self.mask_head(geo).float()
+        if self.config.planes.extended:
+            out["dynamic_prob"] = torch.sigmoid(enc["mask_values"].mean(dim=-1))
+            out["static_space"] = enc["static_space"]
+            out["dynamic_space"] = enc["dynamic_space"]
+        return out
