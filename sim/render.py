@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -127,6 +128,7 @@ def render(world, camera: Camera, cam_from_world, t: float = 0.0, supersample: i
         raise ValueError("cam_from_world must be a finite 4x4 matrix")
     H, W = camera.height, camera.width
     origin, dirs = camera.rays_world(T, camera.pixel_grid(s))  # dirs (H*s, W*s, 3)
+    dirs = dirs.astype(np.float32)  # unit vectors; hit points stay precise to ~1e-5 m at 100 m
     HS, WS = H * s, W * s
 
     # Ground plane.
@@ -157,7 +159,7 @@ def render(world, camera: Camera, cam_from_world, t: float = 0.0, supersample: i
     flat_hit = hit.reshape(-1)
     flat_dirs = dirs.reshape(-1, 3)
     idx = np.nonzero(surface.reshape(-1))[0]
-    P = origin + flat_t[idx, None] * flat_dirs[idx]
+    P = origin.astype(np.float32) + flat_t[idx].astype(np.float32)[:, None] * flat_dirs[idx]
     normals = np.zeros((len(idx), 3))
     normals[:, 2] = 1.0
     albedo = np.zeros((len(idx), 3), np.float32)
@@ -224,14 +226,18 @@ def render(world, camera: Camera, cam_from_world, t: float = 0.0, supersample: i
     light = (SUN_RGB[None, :] * (n_dot_l * lit)[:, None].astype(np.float32)
              + SKY_AMBIENT_RGB[None, :] * sky_term[:, None])
     colour_surf = albedo * light
-    haze = (1.0 - np.exp(-flat_t[idx] / HAZE_DISTANCE_M)).astype(np.float32)[:, None]
-    colour_surf = colour_surf * (1.0 - haze) + HAZE_RGB[None, :] * haze
+    haze = (1.0 - np.exp(-flat_t[idx].astype(np.float32) / np.float32(HAZE_DISTANCE_M)))[:, None]
+    colour_surf += (HAZE_RGB[None, :] - colour_surf) * haze
 
     colour = np.empty((HS * WS, 3), np.float32)
-    up = np.clip(flat_dirs[:, 2], 0.0, 1.0).astype(np.float32)[:, None]
-    colour[:] = HAZE_RGB * (1.0 - up) + np.array([0.25, 0.42, 0.75], np.float32) * up
     colour[idx] = colour_surf
-    lin = colour.reshape(H, s, W, s, 3).mean(axis=(1, 3))
+    sky = np.flatnonzero(~surface.reshape(-1))
+    if len(sky):
+        up = np.clip(flat_dirs[sky, 2], 0.0, 1.0)[:, None]
+        colour[sky] = HAZE_RGB * (1.0 - up) + np.array([0.25, 0.42, 0.75], np.float32) * up
+    # Box filter over each pixel's s x s samples (INTER_AREA is the exact mean for integer factors).
+    lin = cv2.resize(colour.reshape(HS, WS, 3), (W, H), interpolation=cv2.INTER_AREA) if s > 1 \
+        else colour.reshape(H, W, 3)
     rgb = (np.clip(lin, 0.0, 1.0) ** (1.0 / 2.2) * 255.0 + 0.5).astype(np.uint8)
 
     # Instance ids: the person covering the majority of each pixel's samples.

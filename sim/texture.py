@@ -81,20 +81,22 @@ class GroundTexture:
         out = np.zeros((n, 3), np.float32)
         if n == 0:
             return out
-        level = np.log2(np.maximum(footprint_m, 1e-9) / self.texel_m)
-        level = np.clip(np.nan_to_num(level, nan=0.0, posinf=0.0, neginf=0.0), 0.0,
-                        len(self.levels) - 1.0)
-        lo = np.floor(level).astype(np.int32)
+        inv_texel = np.float32(1.0 / self.texel_m)
+        level = np.log2(np.maximum(np.asarray(footprint_m, np.float32) * inv_texel, np.float32(1e-9)))
+        np.nan_to_num(level, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+        np.clip(level, 0.0, len(self.levels) - 1.0, out=level)
+        lo = level.astype(np.int32)  # floor: level >= 0
         frac = (level - lo).astype(np.float32)
-        u0 = np.mod(x / self.texel_m, self.size)
-        v0 = np.mod(y / self.texel_m, self.size)
-        for k in np.unique(lo):
-            sel = np.nonzero(lo == k)[0]
+        u0 = np.mod(np.asarray(x, np.float32) * inv_texel, np.float32(self.size))
+        v0 = np.mod(np.asarray(y, np.float32) * inv_texel, np.float32(self.size))
+        counts = np.bincount(lo, minlength=len(self.levels))
+        for k in np.nonzero(counts)[0]:
+            sel = slice(None) if counts[k] == n else np.flatnonzero(lo == k)
             a = self._sample_level(int(k), u0[sel], v0[sel])
             if k + 1 < len(self.levels):
                 b = self._sample_level(int(k) + 1, u0[sel], v0[sel])
                 f = frac[sel, None]
-                a = a * (1.0 - f) + b * f
+                a += (b - a) * f
             out[sel] = a
         return out
 
@@ -102,15 +104,19 @@ class GroundTexture:
         tex = self.levels[k]
         scale = 1.0 / (1 << k)
         # Texel centres at +0.5; remap's integer coordinates are texel centres.
-        mu = (u * scale - 0.5).astype(np.float32).reshape(-1, 1)
-        mv = (v * scale - 0.5).astype(np.float32).reshape(-1, 1)
         # remap's maps are limited in rows; fold long vectors into a 2-D block.
-        n = len(mu)
+        n = len(u)
         cols = 1024
         rows = -(-n // cols)
-        pad = rows * cols - n
-        mu = np.pad(mu.ravel(), (0, pad)).reshape(rows, cols)
-        mv = np.pad(mv.ravel(), (0, pad)).reshape(rows, cols)
+        mu = np.empty(rows * cols, np.float32)
+        mv = np.empty(rows * cols, np.float32)
+        np.multiply(u, np.float32(scale), out=mu[:n])
+        np.multiply(v, np.float32(scale), out=mv[:n])
+        mu[:n] -= 0.5
+        mv[:n] -= 0.5
+        mu[n:] = 0.0
+        mv[n:] = 0.0
+        mu, mv = mu.reshape(rows, cols), mv.reshape(rows, cols)
         s = cv2.remap(tex, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
         return s.reshape(-1, 3)[:n]
 
