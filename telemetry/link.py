@@ -161,7 +161,7 @@ class CompanionLink:
     def _send(self, msg) -> None:
         if self.conn is None or self._playback:
             return
-        if getattr(self.conn, "udp_server", False) and getattr(self.conn, "last_address", None) is None:
+        if getattr(self.conn, "udp_server", False) and not getattr(self.conn, "clients", None):
             return  # udpin: nobody has talked to us yet, so there is no address to answer
         try:
             self.conn.mav.send(msg)
