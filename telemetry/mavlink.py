@@ -145,7 +145,12 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
             res.bytes_skipped += nxt - pos
             pos = nxt
             continue
-        if msg.get_type() == "BAD_DATA":
+        typ = msg.get_type()
+        if typ.startswith("UNKNOWN_"):  # a valid frame of a message this dialect does not define
+            res.unknown_ids[int(typ[8:])] += 1
+            pos = end
+            continue
+        if typ == "BAD_DATA":
             res.bad_crc += 1
             pos = end
             continue

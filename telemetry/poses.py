@@ -144,10 +144,24 @@ def find_autopilot(records) -> tuple[int, int] | None:
     return None
 
 
+def dedupe(records) -> list:
+    """Drop byte-identical repeats of a frame (same sequence number, time and payload): a message
+    that arrived twice, e.g. over two routes. Different messages never share all their bytes."""
+    seen: set[bytes] = set()
+    out = []
+    for rec in records:
+        if rec.raw in seen:
+            continue
+        seen.add(rec.raw)
+        out.append(rec)
+    return out
+
+
 def extract_tracks(records, config: PosesConfig | None = None) -> TelemetryTracks:
     """Position, attitude and gimbal tracks (companion unix µs) of the autopilot in ``records``."""
     cfg = config or PosesConfig()
     warnings: list[str] = []
+    records = dedupe(records)
     ap = find_autopilot(records)
     if ap is None:
         raise TelemetryError("no autopilot in the telemetry (no vehicle HEARTBEAT and no GLOBAL_POSITION_INT)")
