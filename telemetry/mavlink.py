@@ -146,9 +146,14 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
             pos = nxt
             continue
         typ = msg.get_type()
-        if typ.startswith("UNKNOWN_"):  # a valid frame of a message this dialect does not define
-            res.unknown_ids[int(typ[8:])] += 1
-            pos = end
+        if typ.startswith("UNKNOWN_"):  # a message this dialect does not define (its CRC cannot be checked)
+            if end == n or _plausible_ts(buf, end):
+                res.unknown_ids[int(typ[8:])] += 1
+                pos = end
+            else:  # no record follows: this was garbage that looked like a frame
+                nxt = _resync(buf, pos + 1)
+                res.bytes_skipped += nxt - pos
+                pos = nxt
             continue
         if typ == "BAD_DATA":
             res.bad_crc += 1
