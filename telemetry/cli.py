@@ -28,7 +28,7 @@ def run_poses(args) -> int:
     from telemetry.poses import PosesConfig, poses_from_telemetry
 
     if not args.no_sfm:
-        raise NotImplementedError("SfM refinement is not wired into `uavsim poses` yet; use --no-sfm")
+        raise ValueError("SfM refinement is not wired into `uavsim poses` yet; use --no-sfm")
     if not args.max_gap > 0:
         raise ValueError(f"--max-gap must be > 0 s, got {args.max_gap}")
     flight = read_flight(args.flight)

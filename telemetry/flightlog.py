@@ -84,6 +84,8 @@ class FlightWriter:
         self._csv = open(csv_path, "a")
         if new_csv:
             self._csv.write(CSV_HEADER + "\n")
+            self._csv.flush()
+            os.fsync(self._csv.fileno())
         self._last_sync = self._clock()
         self._fsync_dir(self.root)
 

@@ -85,7 +85,7 @@ class LinkConfig:
     url: str
     source_system: int = 1
     heartbeat_s: float = 1.0
-    timesync_s: float = 1.0
+    timesync_s: float = 0.2
     streams: dict = field(default_factory=lambda: dict(DEFAULT_STREAMS))
     #: resend an unacknowledged SET_MESSAGE_INTERVAL after this long (s)
     interval_retry_s: float = 1.0
@@ -206,13 +206,13 @@ class CompanionLink:
 
     def next_due_us(self) -> int:
         """Companion time (unix µs) at which :meth:`poll` next has something to send."""
+        if self.conn is None:
+            return (self._down_since or self.clock()) + int(self.config.reconnect_s * 1e6)
         due = [self._next_hb]
         if self.target is not None:
             due.append(self._next_ts)
             if not self.stream_fallback and len(self.streams_acked) < len(self.config.streams):
                 due.append(self._next_interval)
-        if self.conn is None and self._down_since is not None:
-            due.append(self._down_since + int(self.config.reconnect_s * 1e6))
         return min(due)
 
     # ---- receiving -----------------------------------------------------------------------------

@@ -144,9 +144,9 @@ def _build_one(comp, items, records, cfg: TimeSyncConfig) -> ClockMap:
 
 
 def _fit_epoch(k: int, items, records, cfg: TimeSyncConfig) -> Epoch:
-    ts_boot, ts_off, ts_rtt = [], [], []
+    ts_boot, ts_lo, ts_hi = [], [], []
     st_boot, st_off = [], []
-    rx_boot, rx_off = [], []
+    rx_boot, rx_hi = [], []
     for i, b in items:
         rec = records[i]
         msg = rec.msg
@@ -154,48 +154,80 @@ def _fit_epoch(k: int, items, records, cfg: TimeSyncConfig) -> Epoch:
         if t == "TIMESYNC":
             rtt = rec.t_unix_us - msg.ts1 / 1000.0
             if 0 <= rtt <= cfg.max_rtt_us:
+                # the reply was made after our request left and before it came back:
+                # ts1 - tc1 <= offset <= recv - tc1
                 ts_boot.append(b)
-                ts_off.append(msg.ts1 / 1000.0 + rtt / 2.0 - b)
-                ts_rtt.append(rtt)
+                ts_lo.append(msg.ts1 / 1000.0 - b)
+                ts_hi.append(rec.t_unix_us - b)
             continue
         if t == "SYSTEM_TIME" and msg.time_unix_usec > 946_684_800_000_000:
             st_boot.append(b)
             st_off.append(msg.time_unix_usec - b)
+        # a message cannot arrive before it was made: offset <= recv - true boot (>= b - 500)
         rx_boot.append(b)
-        rx_off.append(rec.t_unix_us - b)
+        rx_hi.append(rec.t_unix_us - (b - 500.0))
     boots = [b for _, b in items]
     first_ms, last_ms = int(min(boots) // 1000), int(max(boots) // 1000)
     if ts_boot:
-        src, boot, off, cost = "timesync", ts_boot, ts_off, ts_rtt
+        src = "timesync"
+        sb, so = _bounds_windows(np.array(ts_boot), np.array(ts_lo), np.array(ts_hi),
+                                 np.array(rx_boot), np.array(rx_hi), cfg)
     elif st_boot:
-        src, boot, off, cost = "system_time", st_boot, st_off, [0.0] * len(st_boot)
+        src = "system_time"
+        sb, so = _windows(np.array(st_boot), np.array(st_off), cfg, np.mean)
     else:
         # Lower envelope: the least-delayed messages give the smallest recv - boot.
-        src, boot, off, cost = "receive_time", rx_boot, rx_off, rx_off
-    offset, drift, ref, n = _window_fit(np.array(boot), np.array(off), np.array(cost), cfg,
-                                        pick_min=True)
-    rtt = float(np.min(ts_rtt)) if src == "timesync" else None
-    return Epoch(k, src, offset, drift, ref, n, first_ms, last_ms, rtt)
+        src = "receive_time"
+        sb, so = _windows(np.array(rx_boot), np.array(rx_hi), cfg, np.min)
+    offset, drift, ref = _fit_line(sb, so, cfg)
+    rtt = float(np.min(np.array(ts_hi) - np.array(ts_lo))) if src == "timesync" else None
+    return Epoch(k, src, offset, drift, ref, len(sb), first_ms, last_ms, rtt)
 
 
-def _window_fit(boot, off, cost, cfg: TimeSyncConfig, pick_min: bool):
-    """Keep the lowest-cost sample per window of boot time; fit offset (+ drift if the span allows)."""
-    w = cfg.window_s * 1e6
-    keys = np.floor((boot - boot.min()) / w).astype(np.int64)
-    sel_b, sel_o = [], []
+def _window_keys(boot: np.ndarray, t0: float, cfg: TimeSyncConfig) -> np.ndarray:
+    return np.floor((boot - t0) / (cfg.window_s * 1e6)).astype(np.int64)
+
+
+def _windows(boot, off, cfg: TimeSyncConfig, reduce) -> tuple[np.ndarray, np.ndarray]:
+    keys = _window_keys(boot, boot.min(), cfg)
+    sb, so = [], []
     for key in np.unique(keys):
-        idx = np.nonzero(keys == key)[0]
-        j = idx[np.argmin(cost[idx])] if pick_min else idx
-        if pick_min and cost is not None and np.all(cost[idx] == 0):
-            # SYSTEM_TIME: all samples exact up to quantisation: average them.
-            sel_b.append(float(np.mean(boot[idx])))
-            sel_o.append(float(np.mean(off[idx])))
+        idx = keys == key
+        sb.append(float(np.mean(boot[idx])))
+        so.append(float(reduce(off[idx])))
+    return np.array(sb), np.array(so)
+
+
+def _bounds_windows(ts_boot, ts_lo, ts_hi, rx_boot, rx_hi, cfg: TimeSyncConfig):
+    """Per window: intersect the hard bounds on the offset (NTP-style) and take the middle.
+
+    Lower bounds come from TIMESYNC (uplink latency >= 0), upper bounds from TIMESYNC and every
+    boot-timed message (downlink latency >= 0). With the fastest up- and downlink about equal the
+    middle is unbiased whatever the jitter. Inconsistent bounds (clock step) fall back to the
+    lowest-round-trip reply.
+    """
+    t0 = min(ts_boot.min(), rx_boot.min() if len(rx_boot) else ts_boot.min())
+    k_ts = _window_keys(ts_boot, t0, cfg)
+    k_rx = _window_keys(rx_boot, t0, cfg) if len(rx_boot) else np.zeros(0, np.int64)
+    sb, so = [], []
+    for key in np.unique(k_ts):
+        i = k_ts == key
+        lo = float(ts_lo[i].max())
+        hi = float(min(ts_hi[i].min(), rx_hi[k_rx == key].min() if (k_rx == key).any() else np.inf))
+        if lo <= hi:
+            off = 0.5 * (lo + hi)
         else:
-            sel_b.append(float(boot[j]))
-            sel_o.append(float(off[j]))
-    sb, so = np.array(sel_b), np.array(sel_o)
+            j = np.argmin(ts_hi[i] - ts_lo[i])
+            off = 0.5 * (ts_lo[i][j] + ts_hi[i][j])
+        sb.append(float(np.mean(ts_boot[i])))
+        so.append(off)
+    return np.array(sb), np.array(so)
+
+
+def _fit_line(sb: np.ndarray, so: np.ndarray, cfg: TimeSyncConfig) -> tuple[float, float, float]:
+    """offset at ref + drift (fitted only when the windows span long enough)."""
     ref = float(np.mean(sb))
     if len(sb) >= 3 and sb.max() - sb.min() >= cfg.drift_min_span_s * 1e6:
         drift, offset = np.polyfit(sb - ref, so, 1)
-        return float(offset), float(drift), ref, len(sb)
-    return float(np.median(so)), 0.0, ref, len(sb)
+        return float(offset), float(drift), ref
+    return float(np.median(so)), 0.0, ref

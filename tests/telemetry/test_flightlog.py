@@ -125,6 +125,7 @@ WRITER_SCRIPT = textwrap.dedent("""
         w.add_frame(img, T0 + k * 1000)
         k += 1
         if k == 30:
+            w.sync()
             print('ready', flush=True)
 """)
 
