@@ -34,7 +34,7 @@ from telemetry.frames import (
 )
 from telemetry.geodesy import geodetic_to_enu
 from telemetry.posesfile import Origin, PoseEntry, PosesFile
-from telemetry.quat import matrix_to_quat, quat_to_matrix, slerp
+from telemetry.quat import euler_zyx_to_quat, matrix_to_quat, quat_to_matrix, slerp
 from telemetry.timesync import ClockMap, TimeSyncConfig, build_clock_maps
 
 log = logging.getLogger(__name__)
@@ -173,7 +173,7 @@ def extract_tracks(records, config: PosesConfig | None = None) -> TelemetryTrack
         warnings.extend(cm.warnings)
     ap_map = cmaps.get(ap)
     pos_raw: list[tuple[int, float, float, float]] = []
-    att: list[tuple[int, np.ndarray, int]] = []
+    att: list[tuple[int, float, float, float]] = []
     attq: list[tuple[int, np.ndarray, int]] = []
     gim: list[tuple[int, np.ndarray, int]] = []
     for i, rec in enumerate(records):
@@ -189,9 +189,7 @@ def extract_tracks(records, config: PosesConfig | None = None) -> TelemetryTrack
                     continue  # no fix
                 pos_raw.append((t, m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3))
             elif typ == "ATTITUDE":
-                vals = (m.roll, m.pitch, m.yaw)
-                if np.isfinite(vals).all():
-                    att.append((t, matrix_to_quat(euler_zyx_to_matrix(m.yaw, m.pitch, m.roll)), 0))
+                att.append((t, m.yaw, m.pitch, m.roll))
             else:
                 q = np.array([m.q1, m.q2, m.q3, m.q4], dtype=np.float64)
                 if np.isfinite(q).all() and np.linalg.norm(q) > 0.5:
@@ -216,11 +214,17 @@ def extract_tracks(records, config: PosesConfig | None = None) -> TelemetryTrack
         arr = np.array(pos_raw, dtype=np.float64)
         enu = geodetic_to_enu(arr[:, 1], arr[:, 2], arr[:, 3], (lat0, lon0, alt0))
         pos_samples = [(int(p[0]), e, 0) for p, e in zip(pos_raw, enu, strict=True)]
+    att_samples: list[tuple[int, np.ndarray, int]] = []
+    if att and not attq:
+        a = np.array(att, dtype=np.float64)
+        good = np.isfinite(a[:, 1:]).all(axis=1)
+        q = euler_zyx_to_quat(a[good, 1], a[good, 2], a[good, 3])
+        att_samples = [(t, qi, 0) for t, qi in zip((x[0] for x, g in zip(att, good, strict=True) if g), q, strict=True)]
     att_name = "ATTITUDE_QUATERNION" if attq else "ATTITUDE"
     return TelemetryTracks(
         autopilot=ap, origin=origin,
         position=Track.build("position", pos_samples),
-        attitude=Track.build("attitude", attq or att),
+        attitude=Track.build("attitude", attq or att_samples),
         gimbal=Track.build("gimbal", gim),
         clock_maps=cmaps, warnings=warnings, attitude_message=att_name)
 

@@ -63,3 +63,13 @@ def rotation_angle_deg(R_a, R_b) -> float:
     """Angle (degrees) of the rotation taking ``R_a`` to ``R_b``."""
     c = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def euler_zyx_to_quat(yaw, pitch, roll) -> np.ndarray:
+    """Quaternions (N, 4) (w, x, y, z) of ``Rz(yaw) Ry(pitch) Rx(roll)``, vectorised (radians)."""
+    hy, hp, hr = (np.asarray(a, dtype=np.float64) / 2.0 for a in (yaw, pitch, roll))
+    cy, sy, cp, sp, cr, sr = np.cos(hy), np.sin(hy), np.cos(hp), np.sin(hp), np.cos(hr), np.sin(hr)
+    return np.stack([cr * cp * cy + sr * sp * sy,
+                     sr * cp * cy - cr * sp * sy,
+                     cr * sp * cy + sr * cp * sy,
+                     cr * cp * sy - sr * sp * cy], axis=-1)

@@ -146,3 +146,28 @@ def test_kill_9_leaves_a_readable_flight(tmp_path):
     assert len(fl.tlog.records) >= 30 * 7 - 1
     # the only damage a kill can do: a cut last tlog record or a last image cut short (skipped)
     assert all("truncated" in p or "without image" in p for p in fl.problems), fl.problems
+
+
+def test_queued_writer_keeps_order_and_counts_drops(tmp_path):
+    import threading
+
+    from telemetry.logqueue import QueuedFlightWriter
+
+    q = QueuedFlightWriter(FlightWriter(tmp_path / "a", CAM), max_frames_queued=64)
+    for k in range(20):
+        assert q.add_message(T0 + k, b"\xfd" + bytes(20))
+        assert q.add_frame(jpeg(k), T0 + k)
+    q.close()
+    fl = read_flight(tmp_path / "a")
+    assert [t for _, t in fl.frames] == [T0 + k for k in range(20)] and q.dropped_frames == 0
+
+    gate = threading.Event()
+    w = FlightWriter(tmp_path / "b", CAM)
+    real = w.add_frame
+    w.add_frame = lambda *a, **kw: (gate.wait(5), real(*a, **kw))[1]  # a disk that stalls
+    q = QueuedFlightWriter(w, max_frames_queued=2)
+    accepted = [q.add_frame(jpeg(k), T0 + k) for k in range(6)]
+    gate.set()
+    q.close()
+    assert accepted == [True, True, False, False, False, False] and q.dropped_frames == 4
+    assert len(read_flight(tmp_path / "b").frames) == 2

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from telemetry.camera import Camera, Mount
-from telemetry.frames import camera_center, cam_from_world_from_attitude, euler_zyx_to_matrix, mount_from_cam
+from telemetry.frames import cam_from_world_from_attitude, camera_center, euler_zyx_to_matrix, mount_from_cam
 from telemetry.geodesy import enu_to_enu_transform
 from telemetry.poses import PosesConfig, TelemetryError, extract_tracks, poses_from_telemetry
 from telemetry.quat import rotation_angle_deg

@@ -4,9 +4,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from telemetry.frames import euler_zyx_to_matrix
 from telemetry.mavlink import parse_tlog_bytes, read_tlog
 from telemetry.quat import matrix_to_quat, quat_to_matrix, rotation_angle_deg, slerp
-from telemetry.frames import euler_zyx_to_matrix
 
 from .tlogfactory import T0, TlogBuilder, factory_flight
 
@@ -114,3 +114,13 @@ def test_slerp_angle_is_linear(yaw, pitch, roll, u):
     R0, R1, Ru = quat_to_matrix(q0), quat_to_matrix(q1), quat_to_matrix(slerp(q0, -q1, u))
     total = rotation_angle_deg(R0, R1)
     assert abs(rotation_angle_deg(R0, Ru) - u * total) < 1e-4
+
+
+def test_vectorised_euler_quaternions_match_matrices():
+    from telemetry.quat import euler_zyx_to_quat
+
+    rng = np.random.default_rng(0)
+    ypr = rng.uniform(-3, 3, (50, 3)) * [1, 0.5, 1]
+    q = euler_zyx_to_quat(ypr[:, 0], ypr[:, 1], ypr[:, 2])
+    for (y, p, r), qi in zip(ypr, q, strict=True):
+        np.testing.assert_allclose(quat_to_matrix(qi), euler_zyx_to_matrix(y, p, r), atol=1e-12)
