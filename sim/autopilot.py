@@ -305,6 +305,7 @@ class SimAutopilot:
         d = max(self._last_delivery, t_us + self._latency_us())
         self._last_delivery = d
         self._seq += 1
+        self.mav.seq = (self.mav.seq + 1) % 256  # pack() does not advance the MAVLink sequence number
         heapq.heappush(self._outbox, (d, self._seq, data))
 
     def step(self, t_us: int) -> int:

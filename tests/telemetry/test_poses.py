@@ -223,3 +223,16 @@ def test_no_autopilot_or_no_fix_is_a_clear_error():
     b.add(T0 + 2, m.MAVLink_global_position_int_message(100, 0, 0, 0, 0, 0, 0, 0, 0), 1, 1)  # lat=lon=0: no fix
     with pytest.raises(TelemetryError, match="no valid GLOBAL_POSITION_INT"):
         poses_from_telemetry(b.records(), frame_times(2), CAM)
+
+
+def test_mount_status_pitch_overrides_mount():
+    b = TlogBuilder()
+    factory_flight(b, duration_s=3.0)
+    for k in range(31):
+        b.add(T0 + k * 100_000 + 20_000, m.MAVLink_mount_status_message(0, 0, -9000, 0, 0, 0), 1, 1)
+    b.items.sort(key=lambda it: it[0])
+    cam = Camera.from_fov(64, 48, 70.0, Mount(pitch_deg=0.0))
+    poses, tracks = poses_from_telemetry(b.records(), frame_times(3), cam)
+    assert len(tracks.gimbal) == 31
+    for e in poses.frames:
+        assert (e.cam_from_world[:3, :3].T @ np.array([0, 0, 1.0]))[2] == pytest.approx(-1.0, abs=1e-6)

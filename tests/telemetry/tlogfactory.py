@@ -24,7 +24,9 @@ class TlogBuilder:
         key = (sysid, compid)
         if key not in self._mavs:
             self._mavs[key] = new_parser(sysid, compid)
-        raw = bytes(msg.pack(self._mavs[key], force_mavlink1=v1))
+        mav = self._mavs[key]
+        raw = bytes(msg.pack(mav, force_mavlink1=v1))
+        mav.seq = (mav.seq + 1) % 256  # pack() does not advance the sequence number; send() would
         self.items.append((int(t_recv_us), raw))
         return raw
 
