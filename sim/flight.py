@@ -63,6 +63,18 @@ class VirtualClock:
         return self.t_us
 
 
+def advance(autopilot, link, clock: VirtualClock, t_us: int, wait_s: float = 2.0) -> None:
+    """One discrete event at companion time ``t_us``: the autopilot sends what is due, the companion
+    reads it all (waiting up to ``wait_s`` of real time for the bytes to cross the transport) and
+    answers, and the autopilot takes in the answers."""
+    clock.t_us = int(t_us)
+    n = autopilot.step(clock.t_us)
+    sent0 = link.n_sent
+    link.poll(expect=n, wait_s=wait_s)
+    if link.n_sent > sent0:
+        autopilot.receive(clock.t_us, expect=link.n_sent - sent0, wait_s=wait_s)
+
+
 def truth_path(out: str | Path) -> Path:
     """``OUT.truth.json`` beside the flight directory ``OUT``."""
     out = Path(out)
@@ -174,12 +186,7 @@ def run_sim_flight(out: str | Path, config: SimFlightConfig | None = None, progr
             if end_us is not None:
                 cands.append(end_us)
             t = max(min(cands), clock.t_us)
-            clock.t_us = t
-            n = autopilot.step(t)
-            sent0 = link.n_sent
-            link.poll(expect=n, wait_s=2.0)
-            if link.n_sent > sent0:
-                autopilot.receive(t, expect=link.n_sent - sent0, wait_s=2.0)
+            advance(autopilot, link, clock, t)
             if len(truth) < cfg.frames and t >= cam_dev.next_capture_us():
                 t_cap = cam_dev.next_capture_us()
                 T_true = true_cam_from_world(autopilot.true_state(t_cap), None if cfg.gimbal else mount)

@@ -1,7 +1,7 @@
 import pytest
 
 from sim.autopilot import AutopilotConfig, Orbit, PtyTransport, SimAutopilot, UdpTransport
-from sim.flight import VirtualClock
+from sim.flight import VirtualClock, advance
 from telemetry.link import CompanionLink, LinkConfig, LinkError, parse_url
 
 T0 = 1_750_000_000_000_000
@@ -29,13 +29,7 @@ def test_bad_urls_are_clear_errors(bad):
 def run(link, ap, clock, seconds):
     end = clock() + int(seconds * 1e6)
     while clock() < end:
-        t = max(min(ap.next_event_us(), link.next_due_us()), clock())
-        clock.t_us = t
-        n = ap.step(t)
-        sent = link.n_sent
-        link.poll(expect=n, wait_s=2.0)
-        if link.n_sent > sent:
-            ap.receive(t, expect=link.n_sent - sent, wait_s=2.0)
+        advance(ap, link, clock, max(min(ap.next_event_us(), link.next_due_us()), clock()))
 
 
 @pytest.mark.parametrize("kind", ["pty", "udp"])
