@@ -81,6 +81,12 @@ class FlightWriter:
         self._tlog = open(self.root / TLOG, "ab")
         csv_path = self.root / FRAMES_CSV
         new_csv = not csv_path.exists() or csv_path.stat().st_size == 0
+        if not new_csv:  # reopening a flight (e.g. after a restart): append, never overwrite a frame
+            rows = csv_path.read_text(errors="replace").splitlines()[1:]
+            self.n_frames = len([r for r in rows if r.strip()])
+            while (self.root / FRAMES_DIR / f"{self.n_frames:06d}.jpg").exists() or \
+                    (self.root / FRAMES_DIR / f"{self.n_frames:06d}.png").exists():
+                self.n_frames += 1
         self._csv = open(csv_path, "a")
         if new_csv:
             self._csv.write(CSV_HEADER + "\n")

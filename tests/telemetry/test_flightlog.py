@@ -171,3 +171,12 @@ def test_queued_writer_keeps_order_and_counts_drops(tmp_path):
     q.close()
     assert accepted == [True, True, False, False, False, False] and q.dropped_frames == 4
     assert len(read_flight(tmp_path / "b").frames) == 2
+
+
+def test_reopening_a_flight_appends(tmp_path):
+    write_flight(tmp_path / "f", 3)
+    with FlightWriter(tmp_path / "f", CAM) as w:
+        assert w.add_frame(jpeg(9), T0 + 10**6) == "000003.jpg"
+    fl = read_flight(tmp_path / "f")
+    assert [n for n, _ in fl.frames] == ["000000.jpg", "000001.jpg", "000002.jpg", "000003.jpg"]
+    assert fl.problems == []
