@@ -115,7 +115,7 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
         t = unpack_ts(buf, pos)[0]
         flen = frame_length(buf, pos + 8)
         if not (_T_MIN_US <= t <= _T_MAX_US) or flen is None:
-            nxt = _resync(buf, pos + 1)
+            nxt = _resync(data, pos + 1)
             res.bytes_skipped += nxt - pos
             pos = nxt
             continue
@@ -135,13 +135,13 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
                 pos = end
                 continue
             res.bad_crc += 1
-            nxt = _resync(buf, pos + 1)
+            nxt = _resync(data, pos + 1)
             res.bytes_skipped += nxt - pos
             pos = nxt
             continue
         except Exception:  # noqa: BLE001 - pymavlink raises assorted errors on garbage
             res.bad_crc += 1
-            nxt = _resync(buf, pos + 1)
+            nxt = _resync(data, pos + 1)
             res.bytes_skipped += nxt - pos
             pos = nxt
             continue
@@ -151,7 +151,7 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
                 res.unknown_ids[int(typ[8:])] += 1
                 pos = end
             else:  # no record follows: this was garbage that looked like a frame
-                nxt = _resync(buf, pos + 1)
+                nxt = _resync(data, pos + 1)
                 res.bytes_skipped += nxt - pos
                 pos = nxt
             continue
@@ -171,10 +171,9 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
     return res
 
 
-def _resync(buf, start: int) -> int:
+def _resync(b: bytes, start: int) -> int:
     """Next offset >= start holding a plausible timestamp followed by a magic byte (or the end)."""
-    n = len(buf)
-    b = bytes(buf)
+    n = len(b)
     pos = start
     while pos < n:
         i1 = b.find(b"\xfd", pos + 8)
@@ -183,7 +182,7 @@ def _resync(buf, start: int) -> int:
         if not cands:
             return n
         i = min(cands)
-        if _plausible_ts(buf, i - 8):
+        if _plausible_ts(b, i - 8):
             return i - 8
         pos = i - 7
     return n

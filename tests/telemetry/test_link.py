@@ -1,3 +1,5 @@
+import os
+
 import pytest
 
 from sim.autopilot import AutopilotConfig, Orbit, PtyTransport, SimAutopilot, UdpTransport
@@ -84,7 +86,9 @@ def test_reconnect_after_a_dropped_link():
     try:
         run(link, ap, clock, 1.0)
         n_before = len(got)
-        link._dropped(OSError("cable pulled"))  # what poll() does on an I/O error
+        # the serial port fails under the reader (as when a USB adapter is pulled): a real I/O error
+        os.close(link.conn.port.fd)
+        link.poll()
         assert not link.connected
         run(link, ap, clock, 2.0)
     finally:
