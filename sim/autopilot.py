@@ -413,3 +413,21 @@ def _small_rotation(rotvec: np.ndarray) -> np.ndarray:
     k = rotvec / th
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
+
+
+def run_realtime(autopilot: SimAutopilot, stop, clock_us=None, tick_s: float = 0.001) -> None:
+    """Drive ``autopilot`` on the wall clock until ``stop`` (a ``threading.Event``) is set.
+
+    For a companion that runs on real time (the daemon's loop): the autopilot thread sends at the
+    scheduled instants and answers requests as they arrive, like hardware on the other end of a cable.
+    """
+    import time as _time
+
+    now = clock_us or (lambda: _time.time_ns() // 1000)
+    while not stop.is_set():
+        t = now()
+        autopilot.step(t)
+        autopilot.receive(t, expect=0, wait_s=0.0)
+        wait = (autopilot.next_event_us() - now()) / 1e6
+        if wait > 0:
+            autopilot.transport.wait_readable(min(wait, tick_s * 20))
