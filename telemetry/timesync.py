@@ -6,9 +6,9 @@ steps back are reordering). Per epoch the offset ``unix_us - boot_us`` (optional
 drift) comes from, in order of preference:
 
 1. TIMESYNC replies to the companion's own requests (``tc1`` = component boot ns, ``ts1`` = the
-   companion's send time in ns echoed back, received at the tlog time): the round trip gives
-   ``offset = ts1 + rtt/2 - tc1``. Only the lowest-RTT replies per window are used (their latency
-   is the most symmetric), NTP-style; jitter and queueing delay drop out.
+   companion's send time in ns echoed back, received at the tlog time): each round trip bounds
+   the offset, ``ts1 - tc1 <= offset <= recv - tc1``; per window the bounds are intersected and
+   the middle taken (NTP-style), so jitter and queueing delay drop out.
 2. SYSTEM_TIME (``time_unix_usec`` at ``time_boot_ms``): the autopilot's GPS-disciplined clock;
    assumes the companion clock is synchronised to UTC (NTP/GPS), logged at info level.
 3. Receive times (lower envelope of ``recv_us - boot_us``, i.e. assuming the fastest messages had no
@@ -34,7 +34,7 @@ class TimeSyncConfig:
     #: a step back of time_boot_ms larger than this (ms) is a reboot; smaller ones are reordering.
     reboot_backstep_ms: int = 2000
     #: window (s of boot time) in which the best sample is kept; a line is fitted through the windows.
-    window_s: float = 5.0
+    window_s: float = 10.0
     #: fit a clock drift (linear term) when the samples span at least this many seconds.
     drift_min_span_s: float = 30.0
     #: TIMESYNC replies with a round trip longer than this (µs) are ignored.
@@ -170,8 +170,7 @@ def _fit_epoch(k: int, items, records, cfg: TimeSyncConfig) -> Epoch:
     first_ms, last_ms = int(min(boots) // 1000), int(max(boots) // 1000)
     if ts_boot:
         src = "timesync"
-        sb, so = _bounds_windows(np.array(ts_boot), np.array(ts_lo), np.array(ts_hi),
-                                 np.array(rx_boot), np.array(rx_hi), cfg)
+        sb, so = _bounds_windows(np.array(ts_boot), np.array(ts_lo), np.array(ts_hi), cfg)
     elif st_boot:
         src = "system_time"
         sb, so = _windows(np.array(st_boot), np.array(st_off), cfg, np.mean)
@@ -198,22 +197,22 @@ def _windows(boot, off, cfg: TimeSyncConfig, reduce) -> tuple[np.ndarray, np.nda
     return np.array(sb), np.array(so)
 
 
-def _bounds_windows(ts_boot, ts_lo, ts_hi, rx_boot, rx_hi, cfg: TimeSyncConfig):
-    """Per window: intersect the hard bounds on the offset (NTP-style) and take the middle.
+def _bounds_windows(ts_boot, ts_lo, ts_hi, cfg: TimeSyncConfig):
+    """Per window: intersect the hard bounds on the offset that TIMESYNC round trips give (NTP-style)
+    and take the middle.
 
-    Lower bounds come from TIMESYNC (uplink latency >= 0), upper bounds from TIMESYNC and every
-    boot-timed message (downlink latency >= 0). With the fastest up- and downlink about equal the
-    middle is unbiased whatever the jitter. Inconsistent bounds (clock step) fall back to the
-    lowest-round-trip reply.
+    Each reply bounds the offset from below (uplink latency >= 0) and above (downlink latency >= 0).
+    Over a window the tightest bounds come from the fastest up- and the fastest downlink; the
+    middle is unbiased when those are equal, which holds for a request and a reply of the same size
+    on the same link, whatever the jitter. (Telemetry messages are not used as bounds: their
+    latency differs from TIMESYNC's and would bias the middle.) Inconsistent bounds (a clock step)
+    fall back to the lowest-round-trip reply.
     """
-    t0 = min(ts_boot.min(), rx_boot.min() if len(rx_boot) else ts_boot.min())
-    k_ts = _window_keys(ts_boot, t0, cfg)
-    k_rx = _window_keys(rx_boot, t0, cfg) if len(rx_boot) else np.zeros(0, np.int64)
+    k_ts = _window_keys(ts_boot, ts_boot.min(), cfg)
     sb, so = [], []
     for key in np.unique(k_ts):
         i = k_ts == key
-        lo = float(ts_lo[i].max())
-        hi = float(min(ts_hi[i].min(), rx_hi[k_rx == key].min() if (k_rx == key).any() else np.inf))
+        lo, hi = float(ts_lo[i].max()), float(ts_hi[i].min())
         if lo <= hi:
             off = 0.5 * (lo + hi)
         else:

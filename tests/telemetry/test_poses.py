@@ -236,3 +236,18 @@ def test_mount_status_pitch_overrides_mount():
     assert len(tracks.gimbal) == 31
     for e in poses.frames:
         assert (e.cam_from_world[:3, :3].T @ np.array([0, 0, 1.0]))[2] == pytest.approx(-1.0, abs=1e-6)
+
+
+def test_nan_attitude_and_zero_quaternion_are_ignored():
+    b = TlogBuilder()
+    factory_flight(b, duration_s=3.0)
+    boot0 = T0 - 100_000_000
+    for k in range(5):
+        t = T0 + 500_000 + k * 10_000
+        b.add(t, m.MAVLink_attitude_message((t - boot0) // 1000, float("nan"), 0.0, float("inf"), 0, 0, 0))
+    b.items.sort(key=lambda it: it[0])
+    frames = frame_times(4)
+    poses, tracks = poses_from_telemetry(b.records(), frames, CAM)
+    assert np.isfinite(tracks.attitude.values).all()
+    _, re = errors(poses, frames)
+    assert len(re) == 4 and re.max() < 0.05
