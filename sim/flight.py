@@ -260,6 +260,17 @@ def run_cli(args) -> int:
     return 0
 
 
+def sim_world_from_flight(flight_origin, truth: dict) -> np.ndarray:
+    """4x4 rigid transform from a flight's ENU frame (origin = its first fix, e.g. ``PosesFile.origin``)
+    to the simulator's world frame (scene centre on the ground). A flight pose in the sim world:
+    ``cam_from_world_sim = cam_from_world_flight @ inv(sim_world_from_flight(...))``."""
+    from telemetry.geodesy import enu_to_enu_transform
+
+    o = flight_origin
+    t = truth["origin"]
+    return enu_to_enu_transform((o.lat, o.lon, o.alt), (t["lat"], t["lon"], t["alt"]))
+
+
 def pose_errors(poses, truth: dict) -> dict:
     """Errors of a :class:`telemetry.posesfile.PosesFile` against a truth dict (:func:`load_truth`).
 
@@ -267,12 +278,9 @@ def pose_errors(poses, truth: dict) -> dict:
     fix). Returns per-frame position error (m, camera centres) and rotation error (deg) and medians.
     """
     from telemetry.frames import camera_center
-    from telemetry.geodesy import enu_to_enu_transform
     from telemetry.quat import rotation_angle_deg
 
-    o = poses.origin
-    t = truth["origin"]
-    T_truth_from_est = enu_to_enu_transform((o.lat, o.lon, o.alt), (t["lat"], t["lon"], t["alt"]))
+    T_truth_from_est = sim_world_from_flight(poses.origin, truth)
     by_name = {f["frame"]: f for f in truth["frames"]}
     pos_err, rot_err, unposed = [], [], 0
     for e in poses.frames:
