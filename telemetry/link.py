@@ -257,8 +257,7 @@ class CompanionLink:
         typ = msg.get_type()
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         m = _mavlink.dialect()
-        if typ == "HEARTBEAT" and self.target is None and msg.autopilot != m.MAV_AUTOPILOT_INVALID \
-                and msg.type not in (m.MAV_TYPE_GCS, m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_TYPE_GIMBAL):
+        if self.target is None and _mavlink.is_autopilot_heartbeat(msg):
             self.target = src
             log.info("autopilot found: system %d component %d", *src)
         elif typ == "TIMESYNC" and msg.tc1 == 0 and src == self.target:

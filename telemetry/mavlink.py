@@ -31,6 +31,17 @@ _T_MIN_US = 946_684_800_000_000
 _T_MAX_US = 4_102_444_800_000_000
 
 
+#: HEARTBEAT types that are not a vehicle: GCS, onboard controller, gimbal, ADSB, camera, ...
+NOT_VEHICLE_TYPES = frozenset({6, 18, 26, 27, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39, 40, 41, 42})
+MAV_AUTOPILOT_INVALID = 8
+
+
+def is_autopilot_heartbeat(msg) -> bool:
+    """True for the HEARTBEAT of a vehicle's autopilot (not a GCS, companion, gimbal, camera...)."""
+    return (msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID
+            and msg.type not in NOT_VEHICLE_TYPES)
+
+
 def dialect():
     """pymavlink's MAVLink 2 ``ardupilotmega`` dialect module."""
     os.environ["MAVLINK20"] = "1"

@@ -33,15 +33,13 @@ from telemetry.frames import (
     rot_z,
 )
 from telemetry.geodesy import geodetic_to_enu
+from telemetry.mavlink import is_autopilot_heartbeat
 from telemetry.posesfile import Origin, PoseEntry, PosesFile
 from telemetry.quat import euler_zyx_to_quat, matrix_to_quat, quat_to_matrix, slerp
 from telemetry.timesync import ClockMap, TimeSyncConfig, build_clock_maps
 
 log = logging.getLogger(__name__)
 
-#: HEARTBEAT types that are not the vehicle: GCS, onboard controller, gimbal, ADSB, camera, ...
-_NOT_VEHICLE_TYPES = {6, 18, 26, 27, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39, 40, 41, 42}
-_MAV_AUTOPILOT_INVALID = 8
 _GIMBAL_EARTH_FLAGS = 4 | 2048  # GIMBAL_DEVICE_FLAGS_YAW_LOCK | GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME
 
 
@@ -132,7 +130,7 @@ def find_autopilot(records) -> tuple[int, int] | None:
     """(system, component) of the first vehicle autopilot HEARTBEAT, else the main position sender."""
     for rec in records:
         m = rec.msg
-        if m.get_type() == "HEARTBEAT" and m.autopilot != _MAV_AUTOPILOT_INVALID and m.type not in _NOT_VEHICLE_TYPES:
+        if is_autopilot_heartbeat(m):
             return m.get_srcSystem(), m.get_srcComponent()
     counts: dict[tuple[int, int], int] = {}
     for rec in records:
