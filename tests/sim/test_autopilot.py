@@ -53,9 +53,9 @@ def flight(tmp_path, name="f", **kw):
     return out, summary
 
 
-@pytest.mark.parametrize("transport", ["pty", "udp"])
-def test_sim_flight_zero_noise_poses_match_truth(tmp_path, transport):
-    out, summary = flight(tmp_path, transport=transport, fps=4.0)
+@pytest.mark.parametrize("transport,gimbal", [("pty", False), ("udp", True)])
+def test_sim_flight_zero_noise_poses_match_truth(tmp_path, transport, gimbal):
+    out, summary = flight(tmp_path, transport=transport, gimbal=gimbal, fps=4.0)
     assert summary["frames"] == 6 and summary["messages"] > 100
     assert truth_path(out).parent == out.parent and not (out / "truth.json").exists()
     fl = read_flight(out, decode_images=True)
