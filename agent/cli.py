@@ -16,6 +16,8 @@ import sys
 #: Modules that add subcommands, in help order. Each has ``register(subparsers)``.
 COMMAND_MODULES = [
     "sim.cli",
+    "sim.flight",
+    "telemetry.cli",
     "agent.bench_cli",
 ]
 
