@@ -1,0 +1,268 @@
+"""Offline replay of a recorded flight: poses → fit → synth → train → eval → report, resumable.
+
+Every stage writes into the flight's ``derived/`` and leaves a marker (:mod:`agent.stages`), so an
+interrupted replay continues where it stopped; ``--force`` runs everything again. Same flight and
+seed give the same result. With a simulator truth file (``sim-flight`` writes ``OUT.truth.json``)
+the evaluation adds test sets rendered by the simulator at new altitudes — the paper's
+experiment (train at 15 m, test at 35-50 m); without it the detectors are compared on the
+flight's held-out real frames only.
+
+Outputs: ``derived/poses.json`` (+ SfM exports), ``derived/fields/``, ``derived/synth/``,
+``derived/datasets/{real,synthetic,r+s}/``, ``derived/detector/{real,synthetic,r+s}/``
+(best.pt, model.onnx), ``derived/eval/``, ``derived/report.md`` with PNG plots.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from agent.stages import StageRunner
+
+log = logging.getLogger(__name__)
+
+DATASETS = ("real", "synthetic", "r+s")
+
+
+@dataclass
+class ReplayOptions:
+    seed: int = 0
+    force: bool = False
+    sfm: bool = True
+    #: field training budget, s
+    fit_budget_s: float = 300.0
+    #: novel views to synthesise (0: as many as real training frames, the paper's matching)
+    synth_count: int = 0
+    synth_altitudes_m: tuple[float, ...] = (35.0, 40.0, 45.0, 50.0)
+    #: detector training
+    epochs: int = 20
+    batch: int = 16
+    imgsz: int = 640
+    train_budget_s: float | None = None
+    #: simulator truth file: adds altitude test sets rendered by the simulator
+    truth: str | None = None
+    test_altitudes_m: tuple[float, ...] = (15.0, 35.0, 40.0, 45.0, 50.0)
+    test_images_per_altitude: int = 24
+    threads: int | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def _derived(flight: Path) -> Path:
+    return flight / "derived"
+
+
+# ---- stages ----------------------------------------------------------------------------------
+def stage_poses(flight: Path, opts: ReplayOptions) -> dict:
+    """Telemetry poses, refined by SfM unless disabled; per-frame source and reason kept."""
+    from telemetry.flightlog import read_flight
+    from telemetry.poses import PosesConfig, poses_from_telemetry
+
+    rec = read_flight(flight)
+    if not rec.frames:
+        raise ValueError(f"{flight}: no usable frames")
+    poses, tracks = poses_from_telemetry(rec.tlog.records, rec.frames, rec.camera, PosesConfig())
+    out = _derived(flight) / "poses.json"
+    summary = {"frames": len(poses.frames), "telemetry_posed": len(poses.posed()),
+               "time_source": tracks.time_source}
+    if len(poses.posed()) == 0:
+        raise ValueError(f"{flight}: no frame could be posed from telemetry ({poses.frames[0].reason})")
+    if not opts.sfm:
+        poses.save(out)
+        summary["sfm"] = "disabled"
+        return summary
+    from telemetry.sfm import Prior, SfmOptions
+    from telemetry.sfm_flight import refine_flight
+
+    priors = [Prior(e.frame, e.t_unix_us,
+                    None if e.cam_from_world is None else _centre(e.cam_from_world),
+                    sigma_m=(1.0, 1.0, 1.5), cam_from_world=e.cam_from_world) for e in poses.frames]
+    result = refine_flight(flight, priors=priors, origin=poses.origin,
+                           options=SfmOptions(seed=opts.seed, max_image_size=1200))
+    summary.update({"sfm_refined": result.num_refined,
+                    "mean_reprojection_px": result.report.get("mean_reprojection_px"),
+                    "registered_fraction": result.report.get("registered_fraction"),
+                    "points": int(len(result.points_xyz))})
+    return summary
+
+
+def _centre(T):
+    from telemetry.frames import camera_center
+
+    return camera_center(T)
+
+
+def stage_fit(flight: Path, opts: ReplayOptions) -> dict:
+    from fields.data import load_flight
+    from fields.training import FitConfig, evaluate_frames, fit, write_fit_json
+
+    data = load_flight(flight)
+    cfg = FitConfig(budget_s=opts.fit_budget_s, seed=opts.seed, threads=opts.threads)
+    out = _derived(flight) / "fields"
+    out.mkdir(parents=True, exist_ok=True)
+    result = fit(data, cfg, out_dir=out, flight=flight)
+    _, test = data.split(cfg.holdout_every)
+    heldout = evaluate_frames(result.model, data, test, out_dir=out / "heldout") if test else None
+    write_fit_json(out / "fit.json", result, cfg, heldout)
+    return {"steps": result.step, "train_s": round(result.train_s, 1), "params": result.model.param_count(),
+            "mb": round(result.model.param_count() * 4 / 1e6, 2),
+            "heldout_psnr": None if not heldout else heldout.get("psnr"),
+            "heldout_ssim": None if not heldout else heldout.get("ssim"),
+            "heldout_box_iou": None if not heldout else heldout.get("box_iou_mean")}
+
+
+def stage_synth(flight: Path, opts: ReplayOptions) -> dict:
+    from export.datasets import build_paper_datasets, labelled_samples, read_class_names
+    from fields.field_views import FieldViewRenderer
+    from fields.novel_poses import NovelPoseOptions, static_novel_poses
+    from fields.synthesis import synthesize
+    from fields.training import load_checkpoint
+    from telemetry.posesfile import PosesFile
+
+    derived = _derived(flight)
+    poses = PosesFile.load(derived / "poses.json")
+    names = read_class_names(flight / "classes.txt")
+    model, _ = load_checkpoint(derived / "fields" / "static.pt")
+    renderer = FieldViewRenderer(model, n_classes=len(names))
+    real_samples = labelled_samples(flight / "frames", flight / "labels")
+    count = opts.synth_count or max(1, len(real_samples) - len(real_samples) // 5)
+    real_T = [e.cam_from_world for e in poses.posed()]
+    novel = static_novel_poses(poses.camera, real_T, NovelPoseOptions(
+        altitudes_m=opts.synth_altitudes_m, count=count, seed=opts.seed),
+        ground_z=model.ground_z)
+    kept = [p for p in novel if p.kept]
+    dropped = [{"altitude_m": p.altitude_m, "pitch_deg": round(p.pitch_deg, 1), "reason": p.reason}
+               for p in novel if not p.kept]
+    if not kept:
+        raise ValueError("no novel pose stays inside the observed region; lower --altitudes")
+    report = synthesize(renderer, poses.camera, poses.origin, [p.entry() for p in kept], derived / "synth",
+                        names, dropped=dropped,
+                        progress=lambda i, n: log.info("synthesised %d/%d", i, n) if i % 10 == 0 or i == n else None)
+    synthetic = labelled_samples(derived / "synth" / "images", derived / "synth" / "labels")
+    sets = build_paper_datasets(real_samples, synthetic, derived / "datasets", names, seed=opts.seed)
+    return {"images": report.images, "boxes": report.boxes, "boxes_per_class": report.boxes_per_class,
+            "empty_images": report.empty_images, "dropped_poses": len(dropped),
+            "images_per_minute": round(report.images_per_minute, 1),
+            "datasets": {k: str(v) for k, v in sets.items()}}
+
+
+def stage_train(flight: Path, opts: ReplayOptions, name: str) -> dict:
+    from export.onnx_export import export_onnx
+    from export.train import TrainConfig, load_checkpoint, train
+
+    data = _derived(flight) / "datasets" / name / "data.yaml"
+    if not data.is_file():
+        raise FileNotFoundError(f"{data}: dataset missing (run the synth stage)")
+    out = _derived(flight) / "detector" / name
+    cfg = TrainConfig(data=str(data), out=str(out), epochs=opts.epochs, batch=opts.batch, imgsz=opts.imgsz,
+                      seed=opts.seed, threads=opts.threads, max_time_s=opts.train_budget_s)
+    metrics = train(cfg)
+    best = out / "best.pt"
+    model, meta = load_checkpoint(best)
+    export_onnx(model, out / "model.onnx", imgsz=opts.imgsz)
+    return {"metrics": metrics, "onnx": str(out / "model.onnx")}
+
+
+def stage_testsets(flight: Path, opts: ReplayOptions) -> dict:
+    """Simulator-rendered test sets at each altitude (only with a truth file)."""
+    from sim.flight import load_truth
+    from sim.testsets import render_altitude_set
+    from sim.world import WorldConfig, make_world
+    from telemetry.camera import Camera
+
+    truth = load_truth(opts.truth)
+    world = make_world(WorldConfig(**truth["world"]))
+    camera = Camera.from_json(truth["camera"])
+    sets = {}
+    for alt in opts.test_altitudes_m:
+        out = _derived(flight) / "testsets" / f"alt{int(alt):03d}"
+        sets[f"{alt:g} m"] = str(render_altitude_set(world, camera, alt, opts.test_images_per_altitude, out,
+                                                     seed=opts.seed + int(alt)))
+    return {"sets": sets}
+
+
+def stage_eval(flight: Path, opts: ReplayOptions, testsets: dict) -> dict:
+    from export.evaluate import evaluate_model
+
+    derived = _derived(flight)
+    sets = {"held-out real": str(derived / "datasets" / "real" / "data.yaml"), **testsets}
+    table = {}
+    for model_name in DATASETS:
+        onnx = derived / "detector" / model_name / "model.onnx"
+        if not onnx.is_file():
+            continue
+        table[model_name] = {}
+        for set_name, yaml in sets.items():
+            res = evaluate_model(onnx, yaml, imgsz=opts.imgsz)
+            table[model_name][set_name] = res.to_dict()
+    (derived / "eval").mkdir(parents=True, exist_ok=True)
+    (derived / "eval" / "table.json").write_text(json.dumps(table, indent=1) + "\n")
+    return {"table": table}
+
+
+# ---- the whole chain -------------------------------------------------------------------------
+def replay(flight: str | Path, opts: ReplayOptions) -> dict:
+    """Run (or resume) every stage; returns the stage summaries and writes ``derived/report.md``."""
+    from agent.report import write_report
+
+    flight = Path(flight)
+    if not (flight / "frames.csv").is_file():
+        raise FileNotFoundError(f"{flight}: not a recorded flight (no frames.csv)")
+    if opts.truth is not None and not Path(opts.truth).is_file():
+        raise FileNotFoundError(f"{opts.truth}: truth file not found")
+    t0 = time.perf_counter()
+    runner = StageRunner(flight, seed=opts.seed, force=opts.force)
+    runner.run("poses", lambda: stage_poses(flight, opts))
+    runner.run("fit", lambda: stage_fit(flight, opts))
+    runner.run("synth", lambda: stage_synth(flight, opts))
+    for name in DATASETS:
+        if (flight / "derived" / "datasets" / name / "data.yaml").is_file():
+            runner.run(f"train-{name}", lambda name=name: stage_train(flight, opts, name))
+    testsets = {}
+    if opts.truth:
+        testsets = runner.run("testsets", lambda: stage_testsets(flight, opts))["sets"]
+    runner.run("eval", lambda: stage_eval(flight, opts, testsets))
+    summaries = dict(runner.summaries)
+    report = write_report(flight, summaries, {k: runner.seconds(k) for k in summaries},
+                          total_s=time.perf_counter() - t0)
+    return {"summaries": summaries, "report": str(report)}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("replay", help="offline replay: poses → fit → synth → train → eval, resumable")
+    p.add_argument("flight", type=Path)
+    p.add_argument("--force", action="store_true", help="rerun finished stages")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-sfm", action="store_true", help="telemetry poses only")
+    p.add_argument("--fit-budget-s", type=float, default=300.0)
+    p.add_argument("--synth-count", type=int, default=0, help="novel views (0: match the real training set)")
+    p.add_argument("--altitudes", default="35,40,45,50", help="novel-view altitudes above ground, m")
+    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--imgsz", type=int, default=640)
+    p.add_argument("--train-budget-s", type=float, default=None)
+    p.add_argument("--truth", default=None, help="simulator truth file: adds altitude test sets")
+    p.add_argument("--threads", type=int, default=None)
+    p.set_defaults(func=run_cli)
+
+
+def parse_altitudes(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"--altitudes must be comma-separated metres, got {text!r}") from None
+    if not values or min(values) <= 0:
+        raise ValueError(f"--altitudes must be positive metres, got {text!r}")
+    return values
+
+
+def run_cli(args) -> int:
+    opts = ReplayOptions(seed=args.seed, force=args.force, sfm=not args.no_sfm, fit_budget_s=args.fit_budget_s,
+                         synth_count=args.synth_count, synth_altitudes_m=parse_altitudes(args.altitudes),
+                         epochs=args.epochs, batch=args.batch, imgsz=args.imgsz,
+                         train_budget_s=args.train_budget_s, truth=args.truth, threads=args.threads)
+    out = replay(args.flight, opts)
+    print(f"replay finished: {out['report']}")
+    return 0
