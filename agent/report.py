@@ -76,6 +76,7 @@ def plot_map_vs_altitude(table: dict, out: Path) -> Path | None:
 
 def write_report(flight: Path, summaries: dict, stage_seconds: dict, total_s: float) -> Path:
     derived = Path(flight) / "derived"
+    derived.mkdir(parents=True, exist_ok=True)
     lines = [f"# uavsim replay report: {Path(flight).name}", "",
              f"Generated {_dt.datetime.now(_dt.UTC).strftime('%Y-%m-%d %H:%M UTC')}; this run took "
              f"{total_s:.0f} s (finished stages reused from earlier runs count as 0).", "",
@@ -111,7 +112,6 @@ def write_report(flight: Path, summaries: dict, stage_seconds: dict, total_s: fl
             m = t.get("metrics", {})
             lines.append(f"- {name}: best epoch {m.get('best_epoch')}, trained {_fmt(m.get('train_s'), 0)} s")
     out = derived / "report.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
     log.info("report written to %s", out)
     return out
