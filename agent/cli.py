@@ -18,6 +18,8 @@ COMMAND_MODULES = [
     "sim.cli",
     "sim.flight",
     "telemetry.cli",
+    "agent.replay",
+    "agent.daemon",
     "agent.bench_cli",
 ]
 

@@ -96,6 +96,9 @@ class SimConfig:
     radius_m: float = 20.0
     width: int = 640
     height: int = 480
+    #: the simulated autopilot arms this long after start and disarms after (negative: never)
+    arm_after_s: float = 1.0
+    disarm_after_s: float = -1.0
 
 
 @dataclass(frozen=True)
@@ -119,7 +122,7 @@ class AgentConfig:
         if self.detector.rate_hz > self.camera.fps:
             raise ConfigError(f"detector.rate_hz ({self.detector.rate_hz}) exceeds camera.fps ({self.camera.fps})")
         host, sep, port = self.http.bind.rpartition(":")
-        if not sep or not port.isdigit() or not 0 < int(port) < 65536:
+        if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
             raise ConfigError(f"http.bind must be HOST:PORT, got {self.http.bind!r}")
         return self
 

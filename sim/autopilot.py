@@ -160,6 +160,8 @@ class AutopilotConfig:
     gimbal: bool = False
     #: False: refuse SET_MESSAGE_INTERVAL (an old firmware), forcing REQUEST_DATA_STREAM
     honour_message_interval: bool = True
+    #: armed between these flight times (s after start); None: armed throughout
+    armed_window_s: tuple[float, float] | None = None
     rates_hz: dict = field(default_factory=lambda: {"HEARTBEAT": 1.0, "SYSTEM_TIME": 1.0,
                                                      "GLOBAL_POSITION_INT": 10.0, "ATTITUDE": 20.0,
                                                      "GIMBAL_DEVICE_ATTITUDE_STATUS": 10.0})
@@ -374,9 +376,11 @@ class SimAutopilot:
         m = self.m
         boot_ms = self.boot_ms(t_us)
         if name == "HEARTBEAT":
-            msg = m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                              m.MAV_MODE_FLAG_SAFETY_ARMED | m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                                              4, m.MAV_STATE_ACTIVE, 3)
+            window = self.config.armed_window_s
+            armed = window is None or window[0] <= self.flight_s(t_us) < window[1]
+            mode = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (m.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+            msg = m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, mode,
+                                              4, m.MAV_STATE_ACTIVE if armed else m.MAV_STATE_STANDBY, 3)
         elif name == "SYSTEM_TIME":
             msg = m.MAVLink_system_time_message(int(t_us), boot_ms)
         elif name == "GLOBAL_POSITION_INT":
