@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "sim.cli",
     "sim.flight",
     "telemetry.cli",
+    "agent.demo",
     "agent.replay",
     "agent.daemon",
     "agent.bench_cli",
