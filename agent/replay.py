@@ -131,7 +131,7 @@ def stage_synth(flight: Path, opts: ReplayOptions) -> dict:
     real_T = [e.cam_from_world for e in poses.posed()]
     novel = static_novel_poses(poses.camera, real_T, NovelPoseOptions(
         altitudes_m=opts.synth_altitudes_m, count=count, seed=opts.seed),
-        ground_z=model.ground_z)
+        ground_z=model.background.ground_z)
     kept = [p for p in novel if p.kept]
     dropped = [{"altitude_m": p.altitude_m, "pitch_deg": round(p.pitch_deg, 1), "reason": p.reason}
                for p in novel if not p.kept]
