@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from telemetry.camera import Camera
-from telemetry.frames import camera_center, pose_matrix
+from telemetry.frames import camera_center
 
 log = logging.getLogger(__name__)
 
@@ -772,6 +772,10 @@ class _Context:
                                               f"({dev_sigma:.1f} sigma) from the prior", stats))
             else:
                 frames.append(FramePose(name, prior.t_unix_us, T, "sfm", None, stats))
+        for f in frames:  # the COLMAP model holds exactly the frames whose SfM pose is kept
+            iid = self.image_ids[f.frame]
+            if f.source != "sfm" and iid in reg:
+                rec.deregister_frame(rec.image(iid).frame_id)
         n_ok = sum(f.source == "sfm" for f in frames)
         frac = n_ok / len(frames)
         if frac < o.min_registered_fraction:

@@ -12,8 +12,7 @@ from hypothesis import strategies as st
 
 from telemetry.camera import Camera
 from telemetry.frames import camera_center, look_at, pose_matrix, rot_x, rot_y, rot_z
-from telemetry.sfm import (Prior, SfmInputError, SfmOptions, colinearity, pose_errors, refine_poses,
-                           umeyama)
+from telemetry.sfm import Prior, SfmInputError, SfmOptions, colinearity, pose_errors, refine_poses, umeyama
 from telemetry.sfm_sim import gauss_markov, noisy_priors, render_orbit
 
 OPTS = SfmOptions(max_image_size=128, min_frame_observations=15, num_threads=2)
