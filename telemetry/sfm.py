@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from telemetry.camera import Camera
-from telemetry.frames import camera_center
+from telemetry.frames import camera_center, pose_matrix
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +93,9 @@ class SfmOptions:
     """Longest image side for feature extraction, px (keypoints are rescaled to full size)."""
     max_num_features: int = 4096
     """SIFT features kept per image."""
+    sift_first_octave: int = 0
+    """SIFT's first octave: 0 works on the (capped) image, -1 upsamples it 2x first (≈4x slower, more
+    small-scale features)."""
     sequential_overlap: int = 6
     """Match each frame with this many following frames in capture-time order."""
     spatial_neighbors: int = 12
@@ -259,6 +262,37 @@ def colinearity(points: np.ndarray) -> float:
 # the pipeline
 
 
+def candidate_pairs(priors: list[Prior], options: SfmOptions) -> list[tuple[int, int]]:
+    """Image pairs worth matching (indices into ``priors``), sorted and unique.
+
+    Sequential: each frame with the next ``sequential_overlap`` frames in capture-time order (frames
+    without a time keep their list position). Spatial: each frame with up to ``spatial_neighbors``
+    nearest frames whose prior positions lie within ``spatial_max_distance_m`` (3D).
+    """
+    n = len(priors)
+    keys = [(p.t_unix_us if p.t_unix_us is not None else -1, k) for k, p in enumerate(priors)]
+    if all(p.t_unix_us is not None for p in priors):
+        order = [k for _, k in sorted(keys)]
+    else:
+        order = list(range(n))
+    pairs = set()
+    for a in range(n):
+        for b in range(a + 1, min(n, a + 1 + max(1, options.sequential_overlap))):
+            i, j = order[a], order[b]
+            pairs.add((min(i, j), max(i, j)))
+    pos = [p.finite_position() for p in priors]
+    idx = [k for k, p in enumerate(pos) if p is not None]
+    if len(idx) >= 2 and options.spatial_neighbors > 0:
+        P = np.array([pos[k] for k in idx])
+        D = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=-1)
+        for a, i in enumerate(idx):
+            near = [b for b in np.argsort(D[a], kind="stable") if b != a and D[a, b] <= options.spatial_max_distance_m]
+            for b in near[: options.spatial_neighbors]:
+                j = idx[b]
+                pairs.add((min(i, j), max(i, j)))
+    return sorted(pairs)
+
+
 def _validate(images: list[Path], priors: list[Prior], camera: Camera) -> tuple[Path, list[str]]:
     if not images:
         raise SfmInputError("no images given")
@@ -373,6 +407,7 @@ class _Context:
         rec = self._initial_model()
         rec = self._triangulate(rec)
         rec = self._register_missing(rec)
+        rec = self._register_relative(rec)
         rec = self._bundle_adjust(rec)
         self._attitude_gauge(rec)
         t3 = time.perf_counter()
@@ -396,6 +431,7 @@ class _Context:
         ext.num_threads = o.num_threads
         ext.use_gpu = False
         ext.sift.max_num_features = o.max_num_features
+        ext.sift.first_octave = o.sift_first_octave
         pc.extract_features(str(self.db_path), str(self.image_dir), image_names=self.names,
                             camera_mode=pc.CameraMode.SINGLE, reader_options=reader,
                             extraction_options=ext, device=pc.Device.cpu)
@@ -411,7 +447,9 @@ class _Context:
                           for iid in self.name_of}
         n_kp = [len(k) for k in self.keypoints.values()]
         self.report["keypoints_per_image"] = {"median": float(np.median(n_kp)), "min": int(min(n_kp))}
-        # position priors (centred ENU, covariance from the prior noise)
+        # position priors (centred ENU, covariance from the prior noise); COLMAP's own EXIF GPS
+        # priors (WGS84, written by import_images) are replaced by ours
+        db.clear_pose_priors()
         self.pose_priors = {}
         for name, prior in zip(self.names, self.priors, strict=True):
             pos = prior.finite_position()
@@ -440,17 +478,13 @@ class _Context:
 
     def _match(self) -> None:
         pc, o = self.pc, self.o
-        seq = pc.SequentialPairingOptions()
-        seq.overlap = max(1, o.sequential_overlap)
-        seq.quadratic_overlap = False
-        pc.match_sequential(str(self.db_path), self._matching_options(), seq, self._verification(),
-                            device=pc.Device.cpu)
-        if len(self.pose_priors) >= 2 and o.spatial_neighbors > 0:
-            sp = pc.SpatialPairingOptions()
-            sp.ignore_z = False
-            sp.max_num_neighbors = o.spatial_neighbors
-            sp.max_distance = o.spatial_max_distance_m
-            pc.match_spatial(str(self.db_path), self._matching_options(), sp, self._verification(),
+        pairs = candidate_pairs(self.priors, self.o)
+        self.report["candidate_pairs"] = len(pairs)
+        pair_file = self.workdir / "pairs.txt"
+        pair_file.write_text("".join(f"{self.names[i]} {self.names[j]}\n" for i, j in pairs))
+        imported = pc.ImportedPairingOptions()
+        imported.match_list_path = pair_file
+        pc.match_image_pairs(str(self.db_path), self._matching_options(), imported, self._verification(),
                              device=pc.Device.cpu)
         db = pc.Database.open(str(self.db_path))
         pair_ids, geoms = db.read_two_view_geometries()
@@ -506,6 +540,11 @@ class _Context:
 
     def _set_pose(self, rec, name: str, T_centred: np.ndarray) -> None:
         iid = self.image_ids[name]
+        if not rec.exists_image(iid):  # triangulate_points keeps only registered images
+            img = self.pc.Image(name=name, keypoints=self.keypoints[iid], camera_id=self.images[name].camera_id,
+                                image_id=iid)
+            rec.add_image_with_trivial_frame(img, _rigid_from_matrix(T_centred))
+            return
         frame = rec.frame(iid)
         frame.rig_from_world = _rigid_from_matrix(T_centred)
         if not rec.frame(iid).has_pose or iid not in set(rec.reg_frame_ids()):
@@ -570,6 +609,7 @@ class _Context:
         opts = pc.IncrementalPipelineOptions()
         opts.random_seed = self.o.seed
         opts.triangulation.random_seed = self.o.seed
+        opts.triangulation.ignore_two_view_tracks = False
         opts.num_threads = self.o.num_threads
         out = self.workdir / "triangulated"
         out.mkdir(exist_ok=True)
@@ -608,7 +648,7 @@ class _Context:
                 est_opts.ransac.max_error = 8.0
                 est_opts.ransac.random_seed = self.o.seed
                 ans = pc.estimate_and_refine_absolute_pose(np.array(p2d), np.array(p3d),
-                                                           rec.camera(rec.image(iid).camera_id), est_opts)
+                                                           rec.camera(self.images[name].camera_id), est_opts)
                 if ans is None or ans["num_inliers"] < min_inliers:
                     continue
                 self._set_pose(rec, name, _matrix_from_rigid(ans["cam_from_world"]))
@@ -619,6 +659,52 @@ class _Context:
             rec = self._triangulate(rec)
         self.report["initial_poses"] = {k: sum(v == k for v in self.initial_source.values())
                                         for k in set(self.initial_source.values())}
+        return rec
+
+    def _register_relative(self, rec):
+        """Frames PnP could not place (their matches see no triangulated point) but that share a
+        verified pair with a registered frame: rotation from the pair's relative pose, centre from
+        the prior position. Bundle adjustment (with two-view tracks) then refines them; the per-frame
+        checks reject any that do not converge."""
+        pc = self.pc
+        reg = set(rec.reg_image_ids())
+        added = 0
+        for name, prior in zip(self.names, self.priors, strict=True):
+            iid = self.image_ids[name]
+            pos = prior.finite_position()
+            if iid in reg or pos is None:
+                continue
+            partners = [((a, b), inl) for (a, b), inl in self.pairs.items()
+                        if iid in (a, b) and (b if a == iid else a) in reg]
+            if not partners:
+                continue
+            (a, b), inl = max(partners, key=lambda x: len(x[1]))
+            other = b if a == iid else a
+            cols = (0, 1) if a == iid else (1, 0)
+            pts_new = self.keypoints[iid][inl[:, cols[0]].astype(int)]
+            pts_reg = self.keypoints[other][inl[:, cols[1]].astype(int)]
+            cam = rec.camera(self.images[name].camera_id)
+            ransac = pc.RANSACOptions()
+            ransac.max_error = 4.0
+            ransac.random_seed = self.o.seed
+            ans = pc.estimate_relative_pose(cam, pts_reg, cam, pts_new, ransac)
+            if ans is None or ans["num_inliers"] < self.o.min_pair_inliers:
+                continue
+            T_rel = _matrix_from_rigid(ans["cam2_from_cam1"])
+            T_reg = _matrix_from_rigid(rec.image(other).cam_from_world())
+            R = T_rel[:3, :3] @ T_reg[:3, :3]
+            # centre along the pair's baseline direction (epipolar-consistent), at the prior distance
+            c_reg = camera_center(T_reg)
+            direction = T_reg[:3, :3].T @ (-T_rel[:3, :3].T @ T_rel[:3, 3])
+            norm = np.linalg.norm(direction)
+            c = pos - self.offset
+            if norm > 1e-9:
+                c = c_reg + direction / norm * np.linalg.norm(c - c_reg)
+            self._set_pose(rec, name, pose_matrix(R, -R @ c))
+            self.initial_source[name] = f"relative pose to {self.name_of[other]} + prior position"
+            added += 1
+        if added:
+            rec = self._triangulate(rec)
         return rec
 
     def _bundle_adjust(self, rec):
@@ -702,6 +788,8 @@ class _Context:
         pc = self.pc
         opts = pc.IncrementalPipelineOptions()
         opts.random_seed = self.o.seed
+        opts.triangulation.random_seed = self.o.seed
+        opts.triangulation.ignore_two_view_tracks = False
         opts.num_threads = self.o.num_threads
         out = self.workdir / "triangulated"
         return pc.triangulate_points(rec, str(self.db_path), str(self.image_dir), str(out),
