@@ -15,7 +15,7 @@ from telemetry.frames import camera_center, look_at, pose_matrix, rot_x, rot_y, 
 from telemetry.sfm import Prior, SfmInputError, SfmOptions, colinearity, pose_errors, refine_poses, umeyama
 from telemetry.sfm_sim import gauss_markov, noisy_priors, render_orbit
 
-OPTS = SfmOptions(max_image_size=128, min_frame_observations=15, num_threads=2)
+OPTS = SfmOptions(max_image_size=128, sift_first_octave=-1, min_frame_observations=15, num_threads=2)
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_position_only_priors_use_mapper_and_stay_metric(orbit, tmp_path):
     ok = [(f.cam_from_world, T) for f, T in zip(res.frames, truth, strict=True) if f.source == "sfm"]
     assert len(ok) >= 8
     err = pose_errors([a for a, _ in ok], [b for _, b in ok], align=True)
-    assert err["median_rot_deg"] < 0.5 and abs(err["scale"] - 1) < 0.05
+    assert err["median_rot_deg"] < 1.0 and abs(err["scale"] - 1) < 0.05
     for f in res.frames:
         if f.source != "sfm":
             assert f.reason and f.cam_from_world is None and "prior_position_enu" in f.stats

@@ -25,7 +25,7 @@ def flight(tmp_path_factory):
                                                 texture_size=512, texel_m=0.05)
     priors = noisy_priors([p.name for p in images], truth, times, 0.5, 1.0, seed=5)
     res = refine_poses(images, camera, priors, root / "work",
-                       SfmOptions(max_image_size=128, min_frame_observations=15, num_threads=2))
+                       SfmOptions(max_image_size=128, sift_first_octave=-1, min_frame_observations=15, num_threads=2))
     assert res.report["ok"]
     return root, res, write_derived(root, res, ORIGIN)
 
