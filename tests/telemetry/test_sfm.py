@@ -193,3 +193,24 @@ def test_gauss_markov_is_stationary_and_smooth():
 def test_colinearity():
     assert colinearity(np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]], float)) < 1e-9
     assert colinearity(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)) > 0.5
+
+
+def test_blank_frames_keep_telemetry_with_reason_others_refined(orbit, tmp_path):
+    images, camera, truth, priors = orbit
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    copies = []
+    for k, p in enumerate(images):
+        dst = folder / p.name
+        if k in (3, 7):  # lens cap on: a uniform grey frame
+            cv2.imwrite(str(dst), np.full((96, 128, 3), 90, np.uint8))
+        else:
+            dst.write_bytes(p.read_bytes())
+        copies.append(dst)
+    res = refine_poses(copies, camera, priors, tmp_path / "w", OPTS)
+    assert res.report["ok"] and res.num_refined == len(images) - 2
+    for k in (3, 7):
+        f = res.frames[k]
+        assert f.source == "telemetry" and "too few triangulated points (0 <" in f.reason
+        np.testing.assert_array_equal(f.cam_from_world, priors[k].cam_from_world)
+    assert set(res.report["unregistered"]) == {images[3].name, images[7].name}
