@@ -214,3 +214,20 @@ def test_blank_frames_keep_telemetry_with_reason_others_refined(orbit, tmp_path)
         assert f.source == "telemetry" and "too few triangulated points (0 <" in f.reason
         np.testing.assert_array_equal(f.cam_from_world, priors[k].cam_from_world)
     assert set(res.report["unregistered"]) == {images[3].name, images[7].name}
+
+
+def test_far_from_origin_gives_the_same_shifted_result(orbit, refined, tmp_path):
+    """Centring before solving: priors 1000 km from the ENU origin give the same model, shifted."""
+    images, camera, _, priors = orbit
+    shift = np.array([1.0e6, -2.0e6, 500.0])
+    moved = []
+    for p in priors:
+        T = p.cam_from_world.copy()
+        T[:3, 3] = T[:3, 3] - T[:3, :3] @ shift
+        moved.append(Prior(p.frame, p.t_unix_us, p.position_enu + shift, p.sigma_m, T))
+    res = refine_poses(images, camera, moved, tmp_path / "w", OPTS)
+    assert res.num_refined == refined.num_refined
+    for a, b in zip(res.frames, refined.frames, strict=True):
+        np.testing.assert_allclose(camera_center(a.cam_from_world) - shift, camera_center(b.cam_from_world),
+                                   atol=2e-3)
+        np.testing.assert_allclose(a.cam_from_world[:3, :3], b.cam_from_world[:3, :3], atol=1e-4)
