@@ -601,7 +601,9 @@ class _Context:
                     self.initial_source[name] = f"mapper model {k} aligned to priors"
                     todo.discard(name)
 
-    def _triangulate(self, rec):
+    def _triangulate(self, rec, clear_points: bool = True):
+        """Triangulate (``clear_points``: from scratch, else continue and merge tracks) from the current
+        poses, which stay fixed; two-view tracks are kept (frames seen by one partner need them)."""
         pc = self.pc
         if rec.num_reg_images() < 2:
             raise _Degenerate(f"only {rec.num_reg_images()} frame(s) have an initial pose; nothing to "
@@ -614,7 +616,7 @@ class _Context:
         out = self.workdir / "triangulated"
         out.mkdir(exist_ok=True)
         rec = pc.triangulate_points(rec, str(self.db_path), str(self.image_dir), str(out),
-                                    clear_points=True, options=opts, refine_intrinsics=False)
+                                    clear_points=clear_points, options=opts, refine_intrinsics=False)
         return rec
 
     def _register_missing(self, rec, min_inliers: int = 30):
@@ -736,23 +738,24 @@ class _Context:
             log.info("BA round %d: %s, removed %d outlier points, %d points left", round_,
                      getattr(summary, "termination_type", "?"), removed, rec.num_points3D())
             if round_ < o.ba_rounds - 1:
-                rec = self._retriangulate(rec)
+                rec = self._triangulate(rec, clear_points=False)
         return rec
 
     def _attitude_gauge(self, rec) -> None:
         """Fuse the prior attitudes into the model's gauge.
 
         Position priors fix the model's similarity only as well as the prior positions' spread allows
-        (a short arc leaves the rotation about it loose). A final rigid correction (small rotation
-        about the camera centroid + translation) minimises the prior position residuals over their
-        sigma plus the prior attitude residuals over their sigma, then moves the whole model.
+        (a short arc or a straight line leaves the rotation about it loose). A final rigid correction
+        (small rotation about the camera centroid + translation) minimises the prior position
+        residuals over their sigma plus the mean prior attitude residual over the attitude sigma
+        (treated as one bias-like measurement), then moves the whole model.
         """
         pc = self.pc
         rows, rhs = [], []
         reg = sorted(rec.reg_image_ids())
         centres = {i: np.asarray(rec.image(i).projection_center()) for i in reg}
         m = np.mean(list(centres.values()), axis=0)
-        n_att = 0
+        att_e, att_sigma = [], []
         for i in reg:
             name = self.name_of[i]
             prior = self.priors[self.names.index(name)]
@@ -767,13 +770,16 @@ class _Context:
             Tp = prior.finite_pose()
             if Tp is not None:
                 Rk = _matrix_from_rigid(rec.image(i).cam_from_world())[:3, :3]
-                e = _log_so3(Tp[:3, :3].T @ Rk)  # world-frame attitude discrepancy
-                w = 1.0 / math.radians(max(prior.attitude_sigma_deg, 1e-3))
-                rows.append(np.hstack([np.eye(3), np.zeros((3, 3))]) * w)
-                rhs.append(e * w)
-                n_att += 1
+                att_e.append(_log_so3(Tp[:3, :3].T @ Rk))  # world-frame attitude discrepancy
+                att_sigma.append(math.radians(max(prior.attitude_sigma_deg, 1e-3)))
+        n_att = len(att_e)
         if n_att < 3:
             return
+        # AHRS errors drift slowly: over one flight they are mostly a common bias, so all frames
+        # together tell the model's rotation only to about one attitude sigma (one residual, not N).
+        w = 1.0 / float(np.median(att_sigma))
+        rows.append(np.hstack([np.eye(3), np.zeros((3, 3))]) * w)
+        rhs.append(np.mean(att_e, axis=0) * w)
         A, b = np.vstack(rows), np.concatenate(rhs)
         x, *_ = np.linalg.lstsq(A, b, rcond=None)
         omega, t = x[:3], x[3:]
@@ -783,17 +789,6 @@ class _Context:
         rec.transform(sim)
         self.report["attitude_gauge"] = {"rotation_deg": float(np.degrees(np.linalg.norm(omega))),
                                          "translation_m": float(np.linalg.norm(t)), "frames": n_att}
-
-    def _retriangulate(self, rec):
-        pc = self.pc
-        opts = pc.IncrementalPipelineOptions()
-        opts.random_seed = self.o.seed
-        opts.triangulation.random_seed = self.o.seed
-        opts.triangulation.ignore_two_view_tracks = False
-        opts.num_threads = self.o.num_threads
-        out = self.workdir / "triangulated"
-        return pc.triangulate_points(rec, str(self.db_path), str(self.image_dir), str(out),
-                                     clear_points=False, options=opts, refine_intrinsics=False)
 
     def _filter_points(self, rec) -> int:
         rec.update_point_3d_errors()

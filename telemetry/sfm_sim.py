@@ -65,6 +65,18 @@ def noisy_priors(names: list[str], truth: list[np.ndarray], t_unix_us: list[int]
     return priors
 
 
+def orbit_truth(n_frames: int, altitude_m: float = 15.0, radius_m: float = 20.0, arc_deg: float = 360.0,
+                speed_m_s: float = 3.0) -> tuple[list[np.ndarray], list[int]]:
+    """True ``cam_from_world`` poses of an orbit looking at the centre, and capture times (unix µs)."""
+    pitch = -math.degrees(math.atan2(altitude_m, radius_m))
+    step = arc_deg / n_frames
+    dt_s = math.radians(step) * radius_m / speed_m_s
+    t0 = 1_700_000_000_000_000
+    truth = [orbit_pose(altitude_m, radius_m, pitch, k * step) for k in range(n_frames)]
+    times = [t0 + int(round(k * dt_s * 1e6)) for k in range(n_frames)]
+    return truth, times
+
+
 def render_orbit(out_dir: Path, n_frames: int = 60, width: int = 640, height: int = 480,
                  altitude_m: float = 15.0, radius_m: float = 20.0, hfov_deg: float = 70.0,
                  world_seed: int = 0, supersample: int = 2, texture_size: int = 4096,
@@ -79,17 +91,11 @@ def render_orbit(out_dir: Path, n_frames: int = 60, width: int = 640, height: in
     out_dir.mkdir(parents=True, exist_ok=True)
     world = make_world(seed=world_seed, texture_size=texture_size, texel_m=texel_m)
     camera = Camera.from_fov(width, height, hfov_deg)
-    pitch = -math.degrees(math.atan2(altitude_m, radius_m))
-    step = arc_deg / n_frames
-    dt_s = math.radians(step) * radius_m / speed_m_s
-    t0 = 1_700_000_000_000_000
-    images, truth, times = [], [], []
-    for k in range(n_frames):
-        T = orbit_pose(altitude_m, radius_m, pitch, k * step)
+    truth, times = orbit_truth(n_frames, altitude_m, radius_m, arc_deg, speed_m_s)
+    images = []
+    for k, T in enumerate(truth):
         rgb = world.render(camera, T, supersample=supersample).rgb
         path = out_dir / f"{k:06d}.png"
         cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         images.append(path)
-        truth.append(T)
-        times.append(t0 + int(round(k * dt_s * 1e6)))
     return images, camera, truth, times
