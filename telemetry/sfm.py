@@ -861,6 +861,8 @@ class _Context:
                 rec.deregister_frame(rec.image(iid).frame_id)
         n_ok = sum(f.source == "sfm" for f in frames)
         frac = n_ok / len(frames)
+        self.report["initial_poses"] = {k: sum(v == k for v in self.initial_source.values())
+                                        for k in sorted(set(self.initial_source.values()))}
         if frac < o.min_registered_fraction:
             raise _Degenerate(f"low registration: {n_ok} of {len(frames)} frames refined "
                               f"(< {o.min_registered_fraction:.0%})", "registration",
