@@ -231,3 +231,20 @@ def test_far_from_origin_gives_the_same_shifted_result(orbit, refined, tmp_path)
         np.testing.assert_allclose(camera_center(a.cam_from_world) - shift, camera_center(b.cam_from_world),
                                    atol=2e-3)
         np.testing.assert_allclose(a.cam_from_world[:3, :3], b.cam_from_world[:3, :3], atol=1e-4)
+
+
+@pytest.mark.slow
+def test_orbit_60_frames_acceptance(tmp_path):
+    """Issue 4 acceptance on the full simulated orbit (also bench/sfm.py)."""
+    images, camera, truth, times = render_orbit(tmp_path / "orbit", n_frames=60, width=640, height=480)
+    priors = noisy_priors([p.name for p in images], truth, times, 0.5, 1.0, seed=1)
+    for p in priors:
+        p.attitude_sigma_deg = 1.0
+    res = refine_poses(images, camera, priors, tmp_path / "w", SfmOptions(seed=1))
+    assert res.num_refined == 60
+    est, tel = [f.cam_from_world for f in res.frames], [p.cam_from_world for p in priors]
+    aligned = pose_errors(est, truth, align=True)
+    assert aligned["median_rot_deg"] <= 0.1 and aligned["median_pos_m"] <= 0.05
+    assert abs(aligned["scale"] - 1.0) <= 0.01
+    raw, raw_tel = pose_errors(est, truth, align=False), pose_errors(tel, truth, align=False)
+    assert raw["median_rot_deg"] <= raw_tel["median_rot_deg"] and raw["median_pos_m"] <= raw_tel["median_pos_m"]
