@@ -248,3 +248,19 @@ def test_orbit_60_frames_acceptance(tmp_path):
     assert abs(aligned["scale"] - 1.0) <= 0.01
     raw, raw_tel = pose_errors(est, truth, align=False), pose_errors(tel, truth, align=False)
     assert raw["median_rot_deg"] <= raw_tel["median_rot_deg"] and raw["median_pos_m"] <= raw_tel["median_pos_m"]
+
+
+def test_candidate_pairs_follow_capture_time_and_prior_position():
+    from telemetry.sfm import candidate_pairs
+
+    # listed out of time order; frame 3 has no position
+    times = [30, 10, 20, 0]
+    pos = [np.array([0.0, 0, 0]), np.array([100.0, 0, 0]), np.array([200.0, 0, 0]), None]
+    priors = [Prior(f"{k}.jpg", t, p) for k, (t, p) in enumerate(zip(times, pos, strict=True))]
+    seq_only = candidate_pairs(priors, SfmOptions(sequential_overlap=1, spatial_neighbors=0))
+    assert seq_only == sorted([(1, 3), (1, 2), (0, 2)])  # time order 3, 1, 2, 0
+    spatial = candidate_pairs(priors, SfmOptions(sequential_overlap=1, spatial_neighbors=5,
+                                                 spatial_max_distance_m=150.0))
+    assert (0, 1) in spatial and (1, 2) in spatial and (0, 3) not in spatial
+    no_times = [Prior(p.frame, None, p.position_enu) for p in priors]
+    assert candidate_pairs(no_times, SfmOptions(sequential_overlap=1, spatial_neighbors=0)) == [(0, 1), (1, 2), (2, 3)]
