@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -896,11 +895,6 @@ class _Context:
             "camera": refined_cam.to_json(), "enu_offset_m": [float(v) for v in self.offset],
         })
         return SfmResult(frames, refined_cam, xyz, rgb, perr, tl, self.report, rec)
-
-
-def sfm_threads_env() -> None:
-    """Ask OpenMP to sleep rather than spin (the machine is shared); call before heavy work."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def umeyama(src: np.ndarray, tgt: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:

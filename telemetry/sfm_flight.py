@@ -13,8 +13,6 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from telemetry.camera import Camera
 from telemetry.exif import geodetic_to_enu
 from telemetry.exports import write_derived
@@ -112,9 +110,3 @@ def refine_flight(flight_dir: Path, priors: list[Prior] | None = None, origin: O
 def with_options(options: SfmOptions, **changes) -> SfmOptions:
     """A copy of ``options`` with non-None ``changes`` applied (for command-line overrides)."""
     return replace(options, **{k: v for k, v in changes.items() if v is not None})
-
-
-def prior_positions(priors: list[Prior]) -> np.ndarray:
-    """(N,3) prior positions (NaN rows where absent)."""
-    return np.array([p.finite_position() if p.finite_position() is not None else np.full(3, np.nan)
-                     for p in priors])
