@@ -6,17 +6,21 @@ a full prior ``cam_from_world`` from telemetry attitude). The pipeline:
 
 1. SIFT features on CPU (image size capped by :attr:`SfmOptions.max_image_size`);
 2. matching of image pairs that are close in capture time (sequential) or in prior position
-   (spatial), each pair geometrically verified;
+   (spatial), each pair geometrically verified (:func:`candidate_pairs`);
 3. initial poses: the telemetry poses where the priors carry attitude; for position-only priors
    (geotagged photos) pycolmap's incremental mapper builds partial models that are each aligned
    to the prior positions by a robust similarity and merged;
-4. frames still without a pose are registered by PnP against the triangulated points;
-5. points are triangulated from these poses and bundle adjustment refines poses and points with
-   the prior positions as a Gaussian prior (covariance = prior noise), Cauchy-robust reprojection
-   loss, outlier points filtered between rounds;
+4. points are triangulated from these poses (kept fixed); frames still without a pose are
+   registered by PnP against those points, else by the relative pose to their best verified
+   partner with the centre on that pair's baseline at the prior distance;
+5. bundle adjustment refines poses and points with the prior positions as a Gaussian prior
+   (covariance = prior noise) and a Cauchy-robust reprojection loss, outlier points filtered and
+   tracks re-triangulated between rounds; prior attitudes then enter the model's rigid gauge as
+   one bias-like measurement (:meth:`_Context._attitude_gauge`);
 6. every frame is checked (observations, prior deviation); a frame that fails keeps its prior
    pose with ``source = "telemetry"`` and an explicit ``reason``; a run that degenerates as a
-   whole (too few matches, too few registered frames) does the same for every frame.
+   whole (too few matches, too few registered frames, a pycolmap error) does the same for every
+   frame.
 
 All geometry is in the flight's local ENU metric frame; internally coordinates are centred on
 the median prior position (float64 throughout). Poses are OpenCV ``cam_from_world`` 4x4.
@@ -349,6 +353,9 @@ def refine_poses(images: list[Path], camera: Camera, priors: list[Prior], workdi
     except _Degenerate as exc:
         log.warning("SfM degenerate: %s", exc)
         return _failed(priors, camera, str(exc), {"stage": exc.stage, **exc.details})
+    except RuntimeError as exc:  # a COLMAP-side failure: keep the priors, say why, keep the traceback
+        log.exception("SfM failed inside pycolmap")
+        return _failed(priors, camera, f"pycolmap error: {exc}", {"stage": "pycolmap"})
     finally:
         pycolmap.logging.minloglevel = old_level
 
