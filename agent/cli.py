@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "agent.replay",
     "agent.daemon",
     "agent.bench_cli",
+    "telemetry.sfm_cli",
 ]
 
 log = logging.getLogger("uavsim")
