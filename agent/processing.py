@@ -28,6 +28,7 @@ SELF_LABEL_CONF = 0.5
 def self_label(flight: Path, model: Path, conf: float = SELF_LABEL_CONF) -> int:
     """Write ``labels/`` and ``classes.txt`` from the detector's detections; returns boxes written."""
     from export.infer import Detector, read_image
+
     from telemetry.flightlog import read_flight
 
     rec = read_flight(flight)

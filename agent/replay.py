@@ -57,41 +57,9 @@ def _derived(flight: Path) -> Path:
 # ---- stages ----------------------------------------------------------------------------------
 def stage_poses(flight: Path, opts: ReplayOptions) -> dict:
     """Telemetry poses, refined by SfM unless disabled; per-frame source and reason kept."""
-    from telemetry.flightlog import read_flight
-    from telemetry.poses import PosesConfig, poses_from_telemetry
+    from telemetry.pose_pipeline import compute_poses
 
-    rec = read_flight(flight)
-    if not rec.frames:
-        raise ValueError(f"{flight}: no usable frames")
-    poses, tracks = poses_from_telemetry(rec.tlog.records, rec.frames, rec.camera, PosesConfig())
-    out = _derived(flight) / "poses.json"
-    summary = {"frames": len(poses.frames), "telemetry_posed": len(poses.posed()),
-               "time_source": tracks.time_source}
-    if len(poses.posed()) == 0:
-        raise ValueError(f"{flight}: no frame could be posed from telemetry ({poses.frames[0].reason})")
-    if not opts.sfm:
-        poses.save(out)
-        summary["sfm"] = "disabled"
-        return summary
-    from telemetry.sfm import Prior, SfmOptions
-    from telemetry.sfm_flight import refine_flight
-
-    priors = [Prior(e.frame, e.t_unix_us,
-                    None if e.cam_from_world is None else _centre(e.cam_from_world),
-                    sigma_m=(1.0, 1.0, 1.5), cam_from_world=e.cam_from_world) for e in poses.frames]
-    result = refine_flight(flight, priors=priors, origin=poses.origin,
-                           options=SfmOptions(seed=opts.seed, max_image_size=1200))
-    summary.update({"sfm_refined": result.num_refined,
-                    "mean_reprojection_px": result.report.get("mean_reprojection_px"),
-                    "registered_fraction": result.report.get("registered_fraction"),
-                    "points": int(len(result.points_xyz))})
-    return summary
-
-
-def _centre(T):
-    from telemetry.frames import camera_center
-
-    return camera_center(T)
+    return compute_poses(flight, sfm=opts.sfm, seed=opts.seed)
 
 
 def stage_fit(flight: Path, opts: ReplayOptions) -> dict:
@@ -114,11 +82,12 @@ def stage_fit(flight: Path, opts: ReplayOptions) -> dict:
 
 
 def stage_synth(flight: Path, opts: ReplayOptions) -> dict:
+    from fields.training import load_checkpoint
+
     from export.datasets import build_paper_datasets, labelled_samples, read_class_names
     from fields.field_views import FieldViewRenderer
     from fields.novel_poses import NovelPoseOptions, static_novel_poses
     from fields.synthesis import synthesize
-    from fields.training import load_checkpoint
     from telemetry.posesfile import PosesFile
 
     derived = _derived(flight)

@@ -1,4 +1,4 @@
-"""``uavsim poses FLIGHT --no-sfm`` and ``uavsim tlog FILE.tlog [--json]``."""
+"""``uavsim poses FLIGHT [--no-sfm]`` and ``uavsim tlog FILE.tlog [--json]``."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ def register(subparsers) -> None:
     p.add_argument("--no-sfm", action="store_true", help="telemetry poses only (no SfM refinement)")
     p.add_argument("--max-gap", type=float, default=0.5, help="never interpolate across a gap longer than this, s")
     p.add_argument("--no-gimbal", action="store_true", help="ignore gimbal telemetry; use camera.json's mount")
+    p.add_argument("--seed", type=int, default=0, help="seed for SfM (same seed, same result)")
     p.set_defaults(func=run_poses)
     t = subparsers.add_parser("tlog", help="summary of a telemetry log")
     t.add_argument("tlog", type=Path, help="a .tlog file (or a flight directory)")
@@ -24,25 +25,20 @@ def register(subparsers) -> None:
 
 
 def run_poses(args) -> int:
-    from telemetry.flightlog import read_flight
-    from telemetry.poses import PosesConfig, poses_from_telemetry
+    from telemetry.pose_pipeline import compute_poses
 
-    if not args.no_sfm:
-        raise ValueError("SfM refinement is not wired into `uavsim poses` yet; use --no-sfm")
-    if not args.max_gap > 0:
-        raise ValueError(f"--max-gap must be > 0 s, got {args.max_gap}")
-    flight = read_flight(args.flight)
-    if not flight.frames:
-        raise ValueError(f"{args.flight}: no usable frames in frames.csv")
-    cfg = PosesConfig(max_gap_s=args.max_gap, use_gimbal=not args.no_gimbal)
-    poses, tracks = poses_from_telemetry(flight.tlog.records, flight.frames, flight.camera, cfg)
+    summary = compute_poses(args.flight, sfm=not args.no_sfm, seed=args.seed, max_gap_s=args.max_gap,
+                            use_gimbal=not args.no_gimbal)
     out = Path(args.flight) / "derived" / "poses.json"
-    poses.save(out)
-    n_ok = len(poses.posed())
-    print(f"{out}: {n_ok}/{len(poses.frames)} frames posed from telemetry (time source: {tracks.time_source}, "
-          f"attitude: {tracks.attitude_message}{', gimbal' if len(tracks.gimbal) else ''})")
-    if n_ok == 0:
-        raise ValueError(f"{args.flight}: no frame could be posed (first reason: {poses.frames[0].reason})")
+    line = f"{out}: {summary.get('telemetry_posed', '-')}/{summary['frames']} frames posed from telemetry"
+    if "time_source" in summary:
+        line += f" (time source: {summary['time_source']})"
+    if summary.get("sfm") == "on":
+        line += (f"; SfM refined {summary['sfm_refined']}, mean reprojection "
+                 f"{summary['mean_reprojection_px']} px, {summary['points']} points")
+    print(line)
+    for reason in summary.get("not_refined_reasons", []):
+        print(f"  not refined: {reason}")
     return 0
 
 

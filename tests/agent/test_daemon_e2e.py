@@ -16,8 +16,6 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
-import pytest
-
 TOKEN = "e2e-token-0123456789abcdef"
 
 
