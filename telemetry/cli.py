@@ -34,8 +34,9 @@ def run_poses(args) -> int:
     if "time_source" in summary:
         line += f" (time source: {summary['time_source']})"
     if summary.get("sfm") == "on":
+        reproj = summary["mean_reprojection_px"]
         line += (f"; SfM refined {summary['sfm_refined']}, mean reprojection "
-                 f"{summary['mean_reprojection_px']} px, {summary['points']} points")
+                 f"{'-' if reproj is None else f'{reproj:.2f}'} px, {summary['points']} points")
     print(line)
     for reason in summary.get("not_refined_reasons", []):
         print(f"  not refined: {reason}")
