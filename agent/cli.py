@@ -17,6 +17,7 @@ import sys
 COMMAND_MODULES = [
     "sim.cli",
     "agent.bench_cli",
+    "export.cli",
 ]
 
 log = logging.getLogger("uavsim")
