@@ -3,8 +3,10 @@
 import numpy as np
 import pytest
 
-from export.dataset import (AugmentConfig, DatasetError, YoloDataset, collate, label_path, load_data_config,
-                            read_labels)
+from export import dataset as ds_mod
+from export.dataset import AugmentConfig, DatasetError, YoloDataset, collate, label_path, load_data_config
+
+read_labels = ds_mod.read_labels
 
 
 def test_data_yaml_lists_splits_and_names(tiny_data):
