@@ -3,7 +3,7 @@
 Single file (no external data), opset 17, input ``images`` [1,3,H,W] float32 RGB 0..1, output
 ``output0`` [1, 4+nc, N] (cx, cy, w, h input pixels, then sigmoid class scores), no NMS. Metadata
 keys as ultralytics writes them (all values strings): ``description, author, date, version,
-license, docs, stride, task, batch, imgsz, names`` — ``names`` is the text of a dict
+license, docs, stride, task, batch, imgsz, names, args`` — ``names`` is the text of a dict
 ``{0: 'standing', ...}``, ``imgsz`` the text of ``[H, W]``.
 """
 
@@ -38,6 +38,7 @@ def metadata(model: YOLOv8, imgsz: tuple[int, int]) -> dict[str, str]:
         "batch": "1",
         "imgsz": str([int(imgsz[0]), int(imgsz[1])]),
         "names": str({int(k): str(v) for k, v in model.names.items()}),
+        "args": str({"batch": 1, "half": False, "dynamic": False, "simplify": False, "opset": OPSET, "nms": False}),
     }
 
 

@@ -33,7 +33,7 @@ def test_onnx_layout_and_metadata(onnx_model):
     assert dims == [1, 3, 64, 96]
     meta = {p.key: p.value for p in proto.metadata_props}
     for key in ("description", "author", "date", "version", "license", "docs", "stride", "task", "batch",
-                "imgsz", "names"):
+                "imgsz", "names", "args"):
         assert key in meta
     assert ast.literal_eval(meta["names"]) == {0: "standing", 1: "kneeling", 2: "prone"}
     assert ast.literal_eval(meta["imgsz"]) == [64, 96]
