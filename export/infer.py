@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -241,14 +242,23 @@ class Detector:
         return self.session.run([self.output_name], {self.input_name: blob})[0][0]
 
     def detect_array(self, image: np.ndarray, conf: float | None = None, iou: float | None = None,
-                     multi_label: bool = False, max_det: int = 300) -> np.ndarray:
-        """[K,6] rows (x0,y0,x1,y1 original-image pixels, score, class), clipped to the image."""
+                     multi_label: bool = False, max_det: int = 300, timings: dict | None = None) -> np.ndarray:
+        """[K,6] rows (x0,y0,x1,y1 original-image pixels, score, class), clipped to the image.
+
+        ``timings``, when given, receives the seconds spent in ``pre``, ``run`` and ``post``.
+        """
+        t0 = time.perf_counter()
         blob, lb = self.preprocess(image)
-        det = postprocess(self.run(blob), self.conf if conf is None else conf, self.iou if iou is None else iou,
+        t1 = time.perf_counter()
+        raw = self.run(blob)
+        t2 = time.perf_counter()
+        det = postprocess(raw, self.conf if conf is None else conf, self.iou if iou is None else iou,
                           multi_label=multi_label, max_det=max_det)
         if len(det):
             det[:, [0, 2]] = ((det[:, [0, 2]] - lb.pad_x) / lb.scale).clip(0, image.shape[1])
             det[:, [1, 3]] = ((det[:, [1, 3]] - lb.pad_y) / lb.scale).clip(0, image.shape[0])
+        if timings is not None:
+            timings.update(pre=t1 - t0, run=t2 - t1, post=time.perf_counter() - t2)
         return det
 
     def detect(self, image: np.ndarray, conf: float | None = None, iou: float | None = None) -> list[Detection]:

@@ -164,3 +164,10 @@ def test_cli_detect_corrupt_model_is_one_line_error(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2
     assert out.stderr.strip().count("\n") == 0 and "cannot load ONNX model" in out.stderr
+
+
+def test_timings_split_the_call(onnx_model):
+    parts: dict = {}
+    Detector(onnx_model[0]).detect_array(np.zeros((64, 96, 3), np.uint8), timings=parts)
+    assert set(parts) == {"pre", "run", "post"} and all(v >= 0 for v in parts.values())
+    assert parts["run"] > 0
