@@ -14,6 +14,7 @@ import io
 import logging
 import os
 import tempfile
+import warnings
 from pathlib import Path
 
 import torch
@@ -53,7 +54,10 @@ def export_onnx(model: YOLOv8, out: str | Path, imgsz: int | tuple[int, int] = 6
     model = model.float().cpu().eval()
     dummy = torch.zeros(1, 3, *size)
     buf = io.BytesIO()
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        # anchors and strides are constants of a fixed-size export: the tracer's warnings about them are expected
+        warnings.simplefilter("ignore", torch.jit.TracerWarning)
+        warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(model, (dummy,), buf, opset_version=OPSET, input_names=["images"],
                           output_names=["output0"], do_constant_folding=True, dynamo=False)
     proto = onnx.load_from_string(buf.getvalue())
