@@ -83,7 +83,8 @@ def stage_data(n_train: int, n_val: int) -> Path:
     return yaml
 
 
-def stage_train(yaml: Path, epochs: int, batch: int, nbs: int, budget_s: float | None) -> dict:
+def stage_train(yaml: Path, epochs: int, batch: int, nbs: int, budget_s: float | None, run_name: str = "run",
+                weights: str | None = None) -> dict:
     """Train YOLOv8n from scratch at 320 px, export ONNX, evaluate the ONNX through the flight path."""
     import logging
 
@@ -92,9 +93,9 @@ def stage_train(yaml: Path, epochs: int, batch: int, nbs: int, budget_s: float |
     from export.train import TrainConfig, load_checkpoint, train
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    run = WORK / "run"
+    run = WORK / run_name
     cfg = TrainConfig(data=str(yaml), out=str(run), scale="n", epochs=epochs, batch=batch, imgsz=320, nbs=nbs,
-                      close_mosaic=max(2, epochs // 5), max_time_s=budget_s)
+                      close_mosaic=max(2, epochs // 5), max_time_s=budget_s, weights=weights)
     summary = train(cfg)
     model, _ = load_checkpoint(summary["best"])
     onnx_path = export_onnx(model, WORK / "yolov8n_sim15.onnx", 320)
@@ -102,11 +103,11 @@ def stage_train(yaml: Path, epochs: int, batch: int, nbs: int, budget_s: float |
     print(res.table())
     summary.update(onnx=str(onnx_path), onnx_eval=res.to_dict(), config={k: v for k, v in vars(cfg).items()
                                                                           if k != "augment"})
-    (WORK / "train_summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
+    (WORK / f"{run_name}_summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
     return summary
 
 
-def stage_latency(yaml: Path, repeats: int) -> dict:
+def stage_latency(yaml: Path, repeats: int, run_name: str = "run") -> dict:
     """Flight-path latency against bare session.run, and mAP, per input size and thread count."""
     from export.dataset import load_data_config, load_rgb
     from export.evaluate import evaluate_model
@@ -114,7 +115,7 @@ def stage_latency(yaml: Path, repeats: int) -> dict:
     from export.onnx_export import export_onnx
     from export.train import load_checkpoint
 
-    model, _ = load_checkpoint(WORK / "run" / "best.pt")
+    model, _ = load_checkpoint(WORK / run_name / "best.pt")
     images = [load_rgb(p) for p in load_data_config(yaml).val[:8]]
     rows = []
     for imgsz in (320, 640):
@@ -192,6 +193,8 @@ def main() -> None:
     ap.add_argument("--nbs", type=int, default=16, help="nominal batch (gradient accumulation); 16 = none")
     ap.add_argument("--budget-s", type=float, default=None, help="stop training after this many seconds")
     ap.add_argument("--repeats", type=int, default=40, help="latency samples per configuration")
+    ap.add_argument("--run", default="run", help="run folder name under bench/out/detector/")
+    ap.add_argument("--weights", default=None, help="continue from this checkpoint instead of scratch")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -200,10 +203,10 @@ def main() -> None:
     else:
         yaml = WORK / "data" / "data.yaml"
     if args.stage in ("all", "train"):
-        stage_train(yaml, args.epochs, args.batch, args.nbs, args.budget_s)
+        stage_train(yaml, args.epochs, args.batch, args.nbs, args.budget_s, args.run, args.weights)
     if args.stage in ("all", "latency"):
-        lat = stage_latency(yaml, args.repeats)
-        summary_path = WORK / "train_summary.json"
+        lat = stage_latency(yaml, args.repeats, args.run)
+        summary_path = WORK / f"{args.run}_summary.json"
         train_summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
         path = write_json("detector", {"train": train_summary, "latency": lat["rows"]}, args.json)
         plot(train_summary.get("history", []), lat["rows"])
