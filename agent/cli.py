@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "agent.daemon",
     "agent.bench_cli",
     "telemetry.sfm_cli",
+    "export.cli",
 ]
 
 log = logging.getLogger("uavsim")
