@@ -84,7 +84,7 @@ def stage_fit(flight: Path, opts: ReplayOptions) -> dict:
 def stage_synth(flight: Path, opts: ReplayOptions) -> dict:
     from fields.training import load_checkpoint
 
-    from export.datasets import build_paper_datasets, labelled_samples, read_class_names
+    from export.paper_datasets import build_paper_datasets, labelled_samples, read_class_names
     from fields.field_views import FieldViewRenderer
     from fields.novel_poses import NovelPoseOptions, static_novel_poses
     from fields.synthesis import synthesize

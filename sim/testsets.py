@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from export.datasets import Sample, write_dataset
+from export.paper_datasets import Sample, write_dataset
 from sim.world import World
 from telemetry.camera import Camera
 from telemetry.frames import look_at

@@ -2,7 +2,7 @@
 
 import pytest
 
-from export.datasets import (
+from export.paper_datasets import (
     build_paper_datasets,
     labelled_samples,
     read_class_names,
