@@ -94,10 +94,23 @@ def _stop(proc, sig=signal.SIGTERM):
             proc.wait()
 
 
+def _untrained_model(tmp_path) -> str:
+    """A real YOLOv8n ONNX file (random weights): detections are noise, the path is real."""
+    import torch
+
+    from export.onnx_export import export_onnx
+    from export.yolo import YOLOv8
+
+    torch.manual_seed(0)
+    model = YOLOv8(nc=3, scale="n", names={0: "standing", 1: "kneeling", 2: "prone"}).eval()
+    return str(export_onnx(model, tmp_path / "model.onnx", imgsz=160))
+
+
 def test_agent_captures_serves_and_stops_cleanly(tmp_path):
-    proc, base = _start_agent(tmp_path)
+    proc, base = _start_agent(tmp_path, model=_untrained_model(tmp_path))
     try:
-        st = _wait_status(base, lambda s: s["state"] == "capturing" and s["counters"]["frames"] >= 12, proc=proc)
+        st = _wait_status(base, lambda s: s["state"] == "capturing" and s["counters"]["frames"] >= 12
+                          and s["detector"]["processed"] >= 3, proc=proc)
         assert st["heavy_modules"] == []  # the capture process never imports torch or pycolmap
         assert st["link_connected"] and st["armed"]
         flight = st["flight"]
@@ -131,6 +144,12 @@ def test_agent_captures_serves_and_stops_cleanly(tmp_path):
     rec = read_flight(tmp_path / "flights" / flight)
     assert len(rec.frames) >= 12
     assert rec.tlog.records and not rec.tlog.truncated_tail
+    lines = (tmp_path / "flights" / flight / "detections.jsonl").read_text().splitlines()
+    assert len(lines) >= 3
+    frame_names = {name for name, _ in rec.frames}
+    for line in lines:
+        d = json.loads(line)
+        assert d["frame"] in frame_names and isinstance(d["detections"], list) and d["latency_ms"] > 0
 
 
 def test_kill_9_mid_capture_leaves_a_replayable_flight(tmp_path):
