@@ -27,6 +27,7 @@ class DemoPlan:
     width: int
     height: int
     fit_budget_s: float
+    synth_count: int  # 0: as many as real training frames (the paper)
     epochs: int
     imgsz: int
     batch: int
@@ -35,10 +36,10 @@ class DemoPlan:
     train_budget_s: float | None
 
 
-QUICK = DemoPlan(frames=40, width=320, height=240, fit_budget_s=90.0, epochs=12, imgsz=320, batch=8,
-                 test_images=16, sfm=True, train_budget_s=60.0)
-FULL = DemoPlan(frames=60, width=640, height=480, fit_budget_s=300.0, epochs=20, imgsz=640, batch=16,
-                test_images=40, sfm=True, train_budget_s=None)
+QUICK = DemoPlan(frames=32, width=320, height=240, fit_budget_s=60.0, synth_count=16, epochs=8, imgsz=320,
+                 batch=8, test_images=8, sfm=True, train_budget_s=45.0)
+FULL = DemoPlan(frames=60, width=640, height=480, fit_budget_s=300.0, synth_count=0, epochs=20, imgsz=640,
+                batch=16, test_images=40, sfm=True, train_budget_s=None)
 
 
 def register(subparsers) -> None:
@@ -67,7 +68,7 @@ def run_cli(args) -> int:
     else:
         log.info("%s already recorded: reusing it (delete it to record again)", flight)
     opts = ReplayOptions(seed=args.seed, force=args.force, sfm=plan.sfm, fit_budget_s=plan.fit_budget_s,
-                         epochs=plan.epochs, imgsz=plan.imgsz, batch=plan.batch,
+                         synth_count=plan.synth_count, epochs=plan.epochs, imgsz=plan.imgsz, batch=plan.batch,
                          train_budget_s=plan.train_budget_s, truth=str(truth_path(flight)),
                          test_images_per_altitude=plan.test_images)
     result = replay(flight, opts)
