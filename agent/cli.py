@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "sim.cli",
     "sim.flight",
     "telemetry.cli",
+    "fields.synth_flight",
     "agent.demo",
     "agent.replay",
     "agent.daemon",

@@ -82,39 +82,9 @@ def stage_fit(flight: Path, opts: ReplayOptions) -> dict:
 
 
 def stage_synth(flight: Path, opts: ReplayOptions) -> dict:
-    from fields.training import load_checkpoint
+    from fields.synth_flight import synthesize_flight
 
-    from export.paper_datasets import build_paper_datasets, labelled_samples, read_class_names
-    from fields.field_views import FieldViewRenderer
-    from fields.novel_poses import NovelPoseOptions, static_novel_poses
-    from fields.synthesis import synthesize
-    from telemetry.posesfile import PosesFile
-
-    derived = _derived(flight)
-    poses = PosesFile.load(derived / "poses.json")
-    names = read_class_names(flight / "classes.txt")
-    model, _ = load_checkpoint(derived / "fields" / "static.pt")
-    renderer = FieldViewRenderer(model, n_classes=len(names))
-    real_samples = labelled_samples(flight / "frames", flight / "labels")
-    count = opts.synth_count or max(1, len(real_samples) - len(real_samples) // 5)
-    real_T = [e.cam_from_world for e in poses.posed()]
-    novel = static_novel_poses(poses.camera, real_T, NovelPoseOptions(
-        altitudes_m=opts.synth_altitudes_m, count=count, seed=opts.seed),
-        ground_z=model.background.ground_z)
-    kept = [p for p in novel if p.kept]
-    dropped = [{"altitude_m": p.altitude_m, "pitch_deg": round(p.pitch_deg, 1), "reason": p.reason}
-               for p in novel if not p.kept]
-    if not kept:
-        raise ValueError("no novel pose stays inside the observed region; lower --altitudes")
-    report = synthesize(renderer, poses.camera, poses.origin, [p.entry() for p in kept], derived / "synth",
-                        names, dropped=dropped,
-                        progress=lambda i, n: log.info("synthesised %d/%d", i, n) if i % 10 == 0 or i == n else None)
-    synthetic = labelled_samples(derived / "synth" / "images", derived / "synth" / "labels")
-    sets = build_paper_datasets(real_samples, synthetic, derived / "datasets", names, seed=opts.seed)
-    return {"images": report.images, "boxes": report.boxes, "boxes_per_class": report.boxes_per_class,
-            "empty_images": report.empty_images, "dropped_poses": len(dropped),
-            "images_per_minute": round(report.images_per_minute, 1),
-            "datasets": {k: str(v) for k, v in sets.items()}}
+    return synthesize_flight(flight, opts.synth_altitudes_m, opts.synth_count, opts.seed)
 
 
 def stage_train(flight: Path, opts: ReplayOptions, name: str) -> dict:
