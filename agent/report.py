@@ -110,7 +110,8 @@ def write_report(flight: Path, summaries: dict, stage_seconds: dict, total_s: fl
         t = summaries.get(f"train-{name}")
         if t:
             m = t.get("metrics", {})
-            lines.append(f"- {name}: best epoch {m.get('best_epoch')}, trained {_fmt(m.get('train_s'), 0)} s")
+            lines.append(f"- {name}: best epoch {m.get('best_epoch')} (val mAP50 {_fmt(m.get('map50'))}), "
+                         f"trained {_fmt(m.get('seconds'), 0)} s")
     out = derived / "report.md"
     out.write_text("\n".join(lines) + "\n")
     log.info("report written to %s", out)
