@@ -49,10 +49,6 @@ def _level_table_size(res: tuple[int, int, int], log2_table: int) -> tuple[int, 
     return (verts, True) if verts <= cap else (cap, False)
 
 
-def _corner_offsets() -> torch.Tensor:
-    return torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=torch.int32)
-
-
 class _EmbeddingBagSum(torch.autograd.Function):
     """out[n] = sum_k w[n,k] * table[idx[n,k]]; backward scatters into the table with index_add_."""
 
@@ -65,10 +61,16 @@ class _EmbeddingBagSum(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out):
         idx, w = ctx.saved_tensors
-        grad_table = torch.zeros(ctx.table_shape, dtype=grad_out.dtype, device=grad_out.device)
-        contrib = (w.unsqueeze(-1) * grad_out.unsqueeze(1)).reshape(-1, grad_out.shape[-1])
-        grad_table.index_add_(0, idx.reshape(-1), contrib)
-        return grad_table, None, None
+        n_rows, n_feat = ctx.table_shape
+        flat = idx.reshape(-1)
+        if grad_out.is_cuda:
+            grad_table = torch.zeros(ctx.table_shape, dtype=grad_out.dtype, device=grad_out.device)
+            contrib = (w.unsqueeze(-1) * grad_out.unsqueeze(1)).reshape(-1, n_feat)
+            return grad_table.index_add_(0, flat, contrib), None, None
+        # CPU: one weighted bincount per feature is several times faster than index_add_
+        cols = [torch.bincount(flat, weights=(w * grad_out[:, k:k + 1]).reshape(-1), minlength=n_rows)
+                for k in range(n_feat)]
+        return torch.stack(cols, dim=1).to(grad_out.dtype), None, None
 
 
 class HashGrid(nn.Module):
@@ -90,7 +92,10 @@ class HashGrid(nn.Module):
                              persistent=False)
         self.register_buffer("dense_mask", torch.tensor(dense), persistent=False)
         self.register_buffer("table_sizes", torch.tensor(sizes, dtype=torch.int64), persistent=False)
-        self.register_buffer("corners", _corner_offsets(), persistent=False)
+        self.register_buffer("res_i", torch.tensor(config.resolutions, dtype=torch.int32).reshape(-1, 3),
+                             persistent=False)
+        self.register_buffer("hash_mask", torch.tensor([n - 1 for n in sizes], dtype=torch.int32),
+                             persistent=False)
         self.table = nn.Parameter(torch.empty(offsets[-1], config.features).uniform_(
             -config.init_scale, config.init_scale))
 
@@ -99,32 +104,36 @@ class HashGrid(nn.Module):
         return self.n_levels * self.config.features
 
     def _indices_weights(self, x01: torch.Tensor):
-        """Global table indices (N, L, 8) int64 and trilinear weights (N, L, 8)."""
+        """Global table indices (N*L, 8) int64 and trilinear weights (N*L, 8).
+
+        Corner c = (dx, dy, dz) is at position dx + 2 dy + 4 dz. Per-axis terms are computed once
+        (N, L, 2) in int32 and combined by broadcasting, so nothing of shape (N, L, 8, 3) is built.
+        """
         x = x01.float().clamp(0.0, 1.0)
         pos = x.unsqueeze(1) * self.res  # (N, L, 3) in cell units
-        base = torch.minimum(pos.floor(), self.res - 1).to(torch.int32)  # keeps x=1 inside the last cell
-        frac = pos - base.float()  # (N, L, 3)
-        c = self.corners  # (8, 3)
-        vert = base.unsqueeze(2) + c  # (N, L, 8, 3) int32
-        # trilinear weights of the 8 corners
-        wx = torch.where(c[:, 0].bool(), frac[..., 0:1], 1 - frac[..., 0:1])
-        wy = torch.where(c[:, 1].bool(), frac[..., 1:2], 1 - frac[..., 1:2])
-        wz = torch.where(c[:, 2].bool(), frac[..., 2:3], 1 - frac[..., 2:3])
-        w = wx * wy * wz  # (N, L, 8)
-        # dense index (exact) and hashed index (int32 XOR-prime, wrapping multiply)
-        rx = (self.res[:, 0] + 1).to(torch.int64).view(1, -1, 1)
-        ry = (self.res[:, 1] + 1).to(torch.int64).view(1, -1, 1)
-        v64 = vert.to(torch.int64)
-        dense_idx = v64[..., 0] + v64[..., 1] * rx + v64[..., 2] * rx * ry
-        h = (vert[..., 0] * PRIMES[0]) ^ (vert[..., 1] * PRIMES[1]) ^ (vert[..., 2] * PRIMES[2])
-        hashed = torch.remainder(h.to(torch.int64), self.table_sizes.view(1, -1, 1))
-        idx = torch.where(self.dense_mask.view(1, -1, 1), dense_idx, hashed) + self.offsets.view(1, -1, 1)
-        return idx, w
+        base_f = torch.minimum(pos.floor(), self.res - 1)  # keeps x=1 inside the last cell
+        frac = pos - base_f
+        base = base_f.to(torch.int32)
+        b0 = torch.stack([base, base + 1], dim=-1)  # (N, L, 3, 2)
+        wts = torch.stack([1 - frac, frac], dim=-1)  # (N, L, 3, 2)
+        w = (wts[:, :, 2, :, None, None] * wts[:, :, 1, None, :, None] * wts[:, :, 0, None, None, :])
+        # hashed: XOR of coordinate * prime, int32 wrapping; table sizes are powers of two -> mask
+        hx, hy, hz = b0[:, :, 0] * PRIMES[0], b0[:, :, 1] * PRIMES[1], b0[:, :, 2] * PRIMES[2]
+        h = hz[:, :, :, None, None] ^ hy[:, :, None, :, None] ^ hx[:, :, None, None, :]
+        h = h & self.hash_mask.view(1, -1, 1, 1, 1)
+        # dense: x + y*(rx+1) + z*(rx+1)*(ry+1), exact for the levels that fit
+        rx = self.res_i[:, 0].view(1, -1, 1) + 1
+        ry = self.res_i[:, 1].view(1, -1, 1) + 1
+        dx, dy, dz = b0[:, :, 0], b0[:, :, 1] * rx, b0[:, :, 2] * (rx * ry)
+        d = dz[:, :, :, None, None] + dy[:, :, None, :, None] + dx[:, :, None, None, :]
+        idx = torch.where(self.dense_mask.view(1, -1, 1, 1, 1), d, h).to(torch.int64)
+        idx = idx + self.offsets.view(1, -1, 1, 1, 1)
+        return idx.reshape(-1, 8), w.reshape(-1, 8)
 
     def forward(self, x01: torch.Tensor) -> torch.Tensor:
         n = x01.shape[0]
         idx, w = self._indices_weights(x01)
-        out = _EmbeddingBagSum.apply(self.table, idx.reshape(-1, 8), w.reshape(-1, 8).to(self.table.dtype))
+        out = _EmbeddingBagSum.apply(self.table, idx, w.to(self.table.dtype))
         return out.reshape(n, self.out_dim)
 
     def reference_forward(self, x01: torch.Tensor) -> torch.Tensor:
