@@ -16,6 +16,7 @@ import sys
 #: Modules that add subcommands, in help order. Each has ``register(subparsers)``.
 COMMAND_MODULES = [
     "sim.cli",
+    "fields.cli",
     "agent.bench_cli",
 ]
 
