@@ -3,8 +3,7 @@
 import pytest
 import torch
 
-from fields.encodings import (HashGrid, HashGridConfig, TriPlaneConfig, TriPlanes, geometric_resolutions,
-                              make_encoding)
+from fields.encodings import HashGrid, HashGridConfig, TriPlaneConfig, TriPlanes, geometric_resolutions, make_encoding
 
 
 def _points(n=500, seed=0):
@@ -78,4 +77,4 @@ def test_make_encoding_and_bad_kind():
 def test_geometric_resolutions_endpoints():
     r = geometric_resolutions((10, 10, 2), (1000, 1000, 50), 5)
     assert r[0] == (10, 10, 2) and r[-1] == (1000, 1000, 50)
-    assert all(a[0] <= b[0] for a, b in zip(r, r[1:]))
+    assert all(a[0] <= b[0] for a, b in zip(r, r[1:], strict=False))

@@ -6,8 +6,15 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fields.rendering import (accumulate, alpha_from_density, composite, distortion_loss, opacity,
-                              transmittance, weights_from_density)
+from fields.rendering import (
+    accumulate,
+    alpha_from_density,
+    composite,
+    distortion_loss,
+    opacity,
+    transmittance,
+    weights_from_density,
+)
 
 
 def test_zero_density_gives_zero_weights_and_full_transmittance():
