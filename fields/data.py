@@ -37,10 +37,9 @@ def read_classes(flight: Path) -> tuple[str, ...]:
     return DEFAULT_CLASSES
 
 
-def box_mask(label_text: str, width: int, height: int, n_classes: int) -> np.ndarray:
-    """Filled-box class mask (H, W) uint8 from YOLO label lines; malformed lines raise."""
-    mask = np.zeros((height, width), np.uint8)
-    boxes = []
+def parse_labels(label_text: str, width: int, height: int, n_classes: int) -> list[tuple]:
+    """YOLO label lines -> [(class, x0, y0, x1, y1)] in pixel edges; malformed lines raise."""
+    out = []
     for i, line in enumerate(label_text.splitlines()):
         parts = line.split()
         if not parts:
@@ -51,12 +50,17 @@ def box_mask(label_text: str, width: int, height: int, n_classes: int) -> np.nda
         if not 0 <= c < n_classes:
             raise FlightDataError(f"label line {i + 1}: class {c} outside 0..{n_classes - 1}")
         cx, cy, w, h = (float(v) for v in parts[1:5])
-        boxes.append((w * h, c, cx, cy, w, h))
-    for _, c, cx, cy, w, h in sorted(boxes, reverse=True):
-        x0 = int(np.floor((cx - w / 2) * width + 0.5))
-        x1 = int(np.floor((cx + w / 2) * width + 0.5))
-        y0 = int(np.floor((cy - h / 2) * height + 0.5))
-        y1 = int(np.floor((cy + h / 2) * height + 0.5))
+        out.append((c, (cx - w / 2) * width, (cy - h / 2) * height, (cx + w / 2) * width, (cy + h / 2) * height))
+    return out
+
+
+def box_mask(label_text: str, width: int, height: int, n_classes: int) -> np.ndarray:
+    """Filled-box class mask (H, W) uint8 from YOLO label lines; malformed lines raise."""
+    mask = np.zeros((height, width), np.uint8)
+    boxes = parse_labels(label_text, width, height, n_classes)
+    for c, x0, y0, x1, y1 in sorted(boxes, key=lambda b: -(b[3] - b[1]) * (b[4] - b[2])):
+        x0, x1 = int(np.floor(x0 + 0.5)), int(np.floor(x1 + 0.5))
+        y0, y1 = int(np.floor(y0 + 0.5)), int(np.floor(y1 + 0.5))
         mask[max(y0, 0):max(y1, 0), max(x0, 0):max(x1, 0)] = c + 1
     return mask
 
@@ -72,6 +76,8 @@ class FlightData:
     masks: torch.Tensor  # (N, H, W) uint8 class masks
     has_mask: torch.Tensor  # (N,) bool
     classes: tuple[str, ...]
+    #: per frame the label boxes [(class, x0, y0, x1, y1)] in pixel edges ([] without labels)
+    boxes: list[list[tuple]]
 
     @property
     def n(self) -> int:
@@ -95,7 +101,7 @@ def load_flight(flight: str | Path, poses_path: str | Path | None = None) -> Fli
     poses = PosesFile.load(poses_path or flight / "derived" / "poses.json")
     camera = poses.camera
     classes = read_classes(flight)
-    names, Ts, imgs, masks, has = [], [], [], [], []
+    names, Ts, imgs, masks, has, boxes = [], [], [], [], [], []
     skipped = 0
     for entry in poses.frames:
         if entry.cam_from_world is None or entry.frame is None:
@@ -110,10 +116,16 @@ def load_flight(flight: str | Path, poses_path: str | Path | None = None) -> Fli
                                   f"camera says {camera.width}x{camera.height}")
         label = flight / "labels" / (Path(entry.frame).stem + ".txt")
         if label.is_file():
-            masks.append(box_mask(label.read_text(), camera.width, camera.height, len(classes)))
+            text = label.read_text()
+            try:
+                masks.append(box_mask(text, camera.width, camera.height, len(classes)))
+                boxes.append(parse_labels(text, camera.width, camera.height, len(classes)))
+            except FlightDataError as exc:
+                raise FlightDataError(f"{label}: {exc}") from None
             has.append(True)
         else:
             masks.append(np.zeros((camera.height, camera.width), np.uint8))
+            boxes.append([])
             has.append(False)
         names.append(entry.frame)
         Ts.append(np.asarray(entry.cam_from_world, np.float64))
@@ -123,7 +135,7 @@ def load_flight(flight: str | Path, poses_path: str | Path | None = None) -> Fli
     if skipped:
         log.info("skipped %d unposed frames", skipped)
     return FlightData(camera, names, Ts, torch.from_numpy(np.stack(imgs)), torch.from_numpy(np.stack(masks)),
-                      torch.tensor(has), classes)
+                      torch.tensor(has), classes, boxes)
 
 
 class RayBank:

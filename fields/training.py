@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from fields.data import FlightData, RayBank
-from fields.evaluation import boxes_from_mask, match_boxes, psnr, ssim
+from fields.evaluation import MaskBox, boxes_from_mask, match_boxes, psnr, ssim
 from fields.field import FieldConfig
 from fields.model import SamplerConfig, StaticModel
 from fields.scene import SceneBounds, Sizing, scene_bounds, size_model
@@ -295,14 +295,13 @@ def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], mi
     import cv2
 
     rows, ious = [], []
-    W, H = data.camera.width, data.camera.height
     for i in indices:
         r = model.render_image(data.camera, data.cam_from_world[i])
         gt = data.images[i].numpy()
         row = {"frame": data.names[i], "psnr": psnr(r["rgb"], gt), "ssim": ssim(r["rgb"], gt)}
         if bool(data.has_mask[i]):
-            truth = boxes_from_mask(data.masks[i].numpy(), min_area_px=1)
-            truth = [b for b in truth if min(b.x1 - b.x0, b.y1 - b.y0) >= min_box_px]
+            truth = [MaskBox(c, x0, y0, x1, y1, 0) for c, x0, y0, x1, y1 in data.boxes[i]
+                     if min(x1 - x0, y1 - y0) >= min_box_px]
             found = match_boxes(truth, boxes_from_mask(r["mask"]))
             ious += found
             row["box_iou"] = float(np.mean(found)) if found else None
@@ -312,7 +311,6 @@ def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], mi
             both = np.concatenate([(np.clip(r["rgb"], 0, 1) * 255).astype(np.uint8), gt], axis=1)
             cv2.imwrite(str(out_dir / f"{Path(data.names[i]).stem}_render_vs_truth.png"),
                         cv2.cvtColor(both, cv2.COLOR_RGB2BGR))
-    del W, H
     summary = {"frames": rows, "psnr": float(np.mean([r["psnr"] for r in rows])) if rows else None,
                "ssim": float(np.mean([r["ssim"] for r in rows])) if rows else None,
                "box_iou_mean": float(np.mean(ious)) if ious else None,

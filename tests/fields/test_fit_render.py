@@ -139,3 +139,20 @@ def test_cli_errors(tmp_path, tiny_flight, capsys):
     assert "not implemented yet" in capsys.readouterr().err
     assert main(["render", str(tmp_path), "--poses", str(tmp_path / "p.json"), "--out", str(tmp_path / "o")]) == 2
     assert "no such poses file" in capsys.readouterr().err
+
+
+def test_training_learns_the_frames(tiny_flight):
+    d = load_flight(tiny_flight)
+    cfg = FitConfig(**{**TINY, "iters": 1})
+    before = fit(d, cfg)
+    p0 = psnr(before.model.render_image(d.camera, d.cam_from_world[0], with_mask=False)["rgb"], d.images[0].numpy())
+    after = fit(d, FitConfig(**{**TINY, "iters": 80, "batch_rays": 256}))
+    p1 = psnr(after.model.render_image(d.camera, d.cam_from_world[0], with_mask=False)["rgb"], d.images[0].numpy())
+    assert p1 > p0 + 2.0, (p0, p1)
+
+
+def test_heldout_box_iou_uses_label_boxes(tiny_flight):
+    d = load_flight(tiny_flight)
+    assert len(d.boxes[0]) == len((tiny_flight / "labels" / "000000.txt").read_text().splitlines())
+    c, x0, y0, x1, y1 = d.boxes[0][0]
+    assert 0 <= x0 < x1 <= 64 and 0 <= y0 < y1 <= 48
