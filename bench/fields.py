@@ -30,9 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
 
 CONFIGS = {
-    "hash-strat": {"encoding": "hash", "sampler": "stratified", "n_samples": 48},
+    "hash-strat": {"encoding": "hash", "sampler": "stratified", "n_samples": 32},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
-    "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 48},
+    "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
     "planes-occ": {"encoding": "planes", "sampler": "occupancy", "n_samples": 24},
 }
 ALTITUDE_VIEWS = {35: (15.0, -70.0), 50: (10.0, -80.0)}

@@ -87,7 +87,9 @@ class StaticModel(nn.Module):
             probs = torch.softmax(out["mask_logits"].view(r, s, -1), dim=-1)
             bg_class = torch.zeros(probs.shape[-1], device=probs.device)
             bg_class[0] = 1.0
-            res["mask_probs"] = composite(w, probs, bg_class)
+            # weights detached: the mask reads the geometry (shared features) but cannot carve it
+            # (else "background" is cheapest to explain by making the ground transparent)
+            res["mask_probs"] = composite(w.detach(), probs, bg_class)
         return res
 
     def distortion(self, res: dict) -> torch.Tensor:

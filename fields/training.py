@@ -41,7 +41,7 @@ class FitConfig:
 
     encoding: str = "hash"
     sampler: str = "stratified"
-    n_samples: int = 48
+    n_samples: int = 32
     #: stop after this many iterations ...
     iters: int = 20000
     #: ... or this many seconds of training (None: no time limit)
