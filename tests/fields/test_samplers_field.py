@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from fields.field import Background, FieldConfig, StaticField
@@ -131,3 +132,14 @@ def test_gradients_finite_after_100_steps_on_random_data():
                 assert p.grad is None or torch.isfinite(p.grad).all()
             opt.step()
         assert np.isfinite(float(loss.detach()))
+
+
+def test_rays_through_the_slab_floor_end_opaque():
+    cfg = FieldConfig(aabb_lo=tuple(LO.tolist()), aabb_hi=tuple(HI.tolist()), resolutions=[(4, 4, 2)],
+                      log2_table=8, density_bias=-30.0)  # an empty field
+    m = StaticModel(cfg, SamplerConfig("stratified", 8), 0.0, 20.0)
+    o = torch.tensor([[0.0, 0.0, 15.0], [-30.0, 0.0, 4.0]])
+    d = torch.nn.functional.normalize(torch.tensor([[0.1, 0.0, -1.0], [1.0, 0.0, 0.0]]), dim=-1)
+    res = m.render_rays(o, d)
+    assert res["acc"][0].item() == pytest.approx(1.0)  # down through the floor: opaque
+    assert res["acc"][1].item() < 1e-6  # out through a side: background
