@@ -48,6 +48,8 @@ class FitConfig:
     budget_s: float | None = 300.0
     batch_rays: int = 1024
     lr: float = 1e-2
+    #: the MLPs' learning rate relative to ``lr`` (the encoding and background use ``lr``)
+    mlp_lr_scale: float = 1.0
     #: learning rate at the end of the run, as a fraction of ``lr`` (exponential decay)
     lr_final: float = 0.1
     holdout_every: int = 8
@@ -114,7 +116,8 @@ def _optimizer(model: StaticModel, cfg: FitConfig):
     enc = list(model.field.encoding.parameters()) + list(model.background.parameters())
     enc_ids = {id(p) for p in enc}
     rest = [p for p in model.parameters() if id(p) not in enc_ids]
-    groups = [{"params": enc, "lr": cfg.lr, "eps": 1e-15}, {"params": rest, "lr": cfg.lr, "eps": 1e-15}]
+    groups = [{"params": enc, "lr": cfg.lr, "eps": 1e-15, "scale": 1.0},
+              {"params": rest, "lr": cfg.lr * cfg.mlp_lr_scale, "eps": 1e-15, "scale": cfg.mlp_lr_scale}]
     try:
         return torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99), fused=True)
     except (RuntimeError, TypeError):  # older torch without fused CPU Adam
@@ -212,7 +215,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
         lr = cfg.lr * cfg.lr_final ** progress()
         for g in optim.param_groups:
-            g["lr"] = lr
+            g["lr"] = lr * g.get("scale", 1.0)
         fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays,), device=dev, generator=gen)]
         pi = torch.randint(hw, (cfg.batch_rays,), device=dev, generator=gen)
         o, d = bank.rays(fi, pi)
