@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "agent.demo",
     "agent.replay",
     "agent.daemon",
+    "fields.cli",
     "agent.bench_cli",
     "telemetry.sfm_cli",
     "export.cli",

@@ -1,0 +1,201 @@
+"""Static fields: PSNR against wall-clock training time, hash grid vs planes, two samplers.
+
+Scene: the simulator world (seed 0), a 15 m orbit (radius 20 m, pitch -45 deg, 60 frames 320x240,
+every 8th held out) written as a recorded flight with true poses (fields.simscene). For each
+configuration: fit with a wall-clock budget; at fractions of the budget, PSNR on held-out 15 m
+frames and against simulator truth at 35 m (radius 15, pitch -70) and 50 m (radius 10, pitch -80),
+4 azimuths each; full-frame PSNR and "covered" PSNR (pixels whose ground point was seen by >= 2
+training frames). At the end, mask box IoU on held-out frames (people >= 6 px). Evaluation renders
+at half resolution (160x120, truth area-averaged from 320x240) to keep the benchmark affordable
+on a busy 2-core machine; evaluation time is not counted as training time.
+
+    python bench/fields.py [--budget-s 300] [--configs hash-strat,hash-occ,planes-strat,planes-occ]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from bench._common import OUT_DIR, write_json  # noqa: E402
+
+CONFIGS = {
+    "hash-strat": {"encoding": "hash", "sampler": "stratified", "n_samples": 32},
+    "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
+    "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
+    "planes-occ": {"encoding": "planes", "sampler": "occupancy", "n_samples": 24},
+}
+ALTITUDE_VIEWS = {35: (15.0, -70.0), 50: (10.0, -80.0)}
+AZIMUTHS = (20.0, 110.0, 200.0, 290.0)
+
+
+def load_avg() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
+def prepare(flight: Path, seed: int = 0):
+    """The flight and the truth views (cached in bench/out)."""
+    import cv2
+
+    from fields.simscene import OrbitSpec, write_orbit_flight
+    from sim.world import make_world
+    from telemetry.camera import Camera, Mount
+    from telemetry.frames import orbit_pose
+
+    camera = Camera.from_fov(320, 240, 70.0, Mount(pitch_deg=-45))
+    truth_dir = flight / "truth"
+    world = None
+    if not (flight / "derived" / "poses.json").is_file():
+        world = make_world(seed=seed)
+        write_orbit_flight(flight, world, camera, OrbitSpec(15.0, 20.0, -45.0, 60), supersample=2)
+    views = []
+    for alt, (radius, pitch) in ALTITUDE_VIEWS.items():
+        for az in AZIMUTHS:
+            T = orbit_pose(alt, radius, pitch, az)
+            path = truth_dir / f"alt{alt}_az{int(az):03d}.png"
+            if not path.is_file():
+                world = world or make_world(seed=seed)
+                truth_dir.mkdir(parents=True, exist_ok=True)
+                res = world.render(camera, T, supersample=2)
+                cv2.imwrite(str(path), cv2.cvtColor(res.rgb, cv2.COLOR_RGB2BGR))
+            rgb = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+            views.append((alt, az, T, rgb))
+    return camera, views
+
+
+def half(img: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+
+
+def covered_mask(camera, T, train_Ts) -> np.ndarray:
+    """(H, W) bool: the pixel's ground point (z = 0) lies in >= 2 training frames."""
+    uv = camera.pixel_grid().reshape(-1, 2)
+    o, d = camera.rays_world(T, uv)
+    t = np.where(d[:, 2] < -1e-6, -o[2] / np.minimum(d[:, 2], -1e-6), np.inf)
+    pts = o + t[:, None] * d
+    count = np.zeros(len(uv), int)
+    for Tt in train_Ts:
+        p, front = camera.project_world(pts, Tt)
+        ok = front & (p[:, 0] >= 0) & (p[:, 0] < camera.width) & (p[:, 1] >= 0) & (p[:, 1] < camera.height)
+        count += ok
+    return (count >= 2).reshape(camera.height, camera.width) & np.isfinite(t).reshape(camera.height, camera.width)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--budget-s", type=float, default=300.0)
+    ap.add_argument("--configs", default=",".join(CONFIGS))
+    ap.add_argument("--eval-fractions", default="0.5,1.0")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+
+    import torch
+
+    from fields.data import load_flight
+    from fields.evaluation import psnr, ssim
+    from fields.training import FitConfig, evaluate_frames, fit
+
+    torch.set_num_threads(args.threads)
+    t0 = time.perf_counter()
+    camera, views = prepare(args.flight)
+    print(f"scene ready in {time.perf_counter() - t0:.0f} s; {load_avg()}", flush=True)
+    data = load_flight(args.flight)
+    train_idx, test_idx = data.split(8)
+    cam_half = camera.scaled(0.5)
+    train_Ts = [data.cam_from_world[i] for i in train_idx]
+    cov = {(alt, az): half(covered_mask(camera, T, train_Ts).astype(np.float32)) > 0.5
+           for alt, az, T, _ in views}
+    truth_half = {(alt, az): half(rgb) for alt, az, _, rgb in views}
+    held_half = {i: half(data.images[i].numpy()) for i in test_idx}
+    fractions = [float(f) for f in args.eval_fractions.split(",")]
+
+    results = []
+    for name in args.configs.split(","):
+        spec = CONFIGS[name]
+        cfg = FitConfig(budget_s=args.budget_s, iters=10**7, threads=args.threads, **spec)
+        points = []
+
+        def on_eval(model, step, train_s, points=points, name=name):
+            t_e = time.perf_counter()
+            row = {"step": step, "train_s": round(train_s, 1)}
+            ps, ss = [], []
+            for i in test_idx:
+                r = model.render_image(cam_half, data.cam_from_world[i], with_mask=False)
+                ps.append(psnr(r["rgb"], held_half[i]))
+                ss.append(ssim(r["rgb"], held_half[i]))
+            row["heldout15_psnr"], row["heldout15_ssim"] = float(np.mean(ps)), float(np.mean(ss))
+            for alt in ALTITUDE_VIEWS:
+                full, covd, sv = [], [], []
+                for a, az, T, _ in views:
+                    if a != alt:
+                        continue
+                    r = model.render_image(cam_half, T, with_mask=False)
+                    full.append(psnr(r["rgb"], truth_half[(a, az)]))
+                    covd.append(psnr(r["rgb"], truth_half[(a, az)], cov[(a, az)]))
+                    sv.append(ssim(r["rgb"], truth_half[(a, az)]))
+                row[f"truth{alt}_psnr"] = float(np.mean(full))
+                row[f"truth{alt}_psnr_covered"] = float(np.nanmean(covd))
+                row[f"truth{alt}_ssim"] = float(np.mean(sv))
+            row["eval_s"] = round(time.perf_counter() - t_e, 1)
+            row["load"] = load_avg()
+            points.append(row)
+            print(f"  {name} {json.dumps(row)}", flush=True)
+
+        print(f"{name}: fitting for {args.budget_s:.0f} s; {load_avg()}", flush=True)
+        res = fit(data, cfg, on_eval=on_eval, eval_at_s=[f * args.budget_s for f in fractions[:-1]])
+        on_eval(res.model, res.step, res.train_s)
+        masks = evaluate_frames(res.model, data, test_idx[:3])  # full resolution, 3 frames
+        n = res.model.param_count()
+        results.append({"config": name, **spec, "params": n, "mb": round(n * 4 / 1e6, 2), "steps": res.step,
+                        "train_s": round(res.train_s, 1), "s_per_step": round(res.train_s / max(res.step, 1), 3),
+                        "points": points, "mask_box_iou_mean": masks["box_iou_mean"],
+                        "mask_box_iou_ge_0.5": masks["box_iou_ge_0.5"], "mask_boxes": masks["boxes_evaluated"],
+                        "heldout15_full_res_psnr_3frames": masks["psnr"],
+                        "sizing": res.sizing.reasoning if res.sizing else None})
+        print(f"{name}: {res.step} steps, {n} params ({n * 4 / 1e6:.1f} MB), mask IoU {masks['box_iou_mean']}",
+              flush=True)
+        path = write_json("fields", {"budget_s": args.budget_s, "flight": "sim seed 0, 15 m orbit r20 pitch -45, "
+                                     "60 frames 320x240, every 8th held out", "eval_resolution": [160, 120],
+                                     "results": results}, args.json)
+    plot(results)
+    print(f"wrote {path} and {OUT_DIR / 'fields.png'}")
+
+
+def plot(results: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [("heldout15_psnr", "held-out 15 m"), ("truth35_psnr", "truth 35 m"), ("truth50_psnr", "truth 50 m")]
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), sharey=False)
+    for ax, (k, title) in zip(axes, keys, strict=True):
+        for r in results:
+            ax.plot([p["train_s"] for p in r["points"]], [p[k] for p in r["points"]], "o-",
+                    label=f"{r['config']} ({r['mb']:.0f} MB)")
+        ax.set_title(title)
+        ax.set_xlabel("training seconds (2 threads, shared machine)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("PSNR (dB)")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    fig.savefig(OUT_DIR / "fields.png", dpi=110)
+
+
+if __name__ == "__main__":
+    main()

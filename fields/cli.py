@@ -1,0 +1,128 @@
+"""``uavsim fit`` and ``uavsim render``: fit a static field to a flight, render it at any poses.
+
+``fit FLIGHT --kind static`` reads ``FLIGHT/derived/poses.json`` and writes ``FLIGHT/derived/fields/``:
+``static.pt`` (checkpoint, resumable with ``--resume``), ``fit.json`` (held-out PSNR/SSIM and mask
+box IoU, training curve, parameter count, MB, sizing reasoning) and ``heldout/`` previews.
+``render FLIGHT --poses POSES.json --out DIR [--masks]`` writes ``NAME.png`` per pose (NAME = the
+pose's ``frame`` stem, else ``pose_NNNNN`` by index) and with ``--masks`` ``NAME_mask.png``
+(class id per pixel, 0 = background) and YOLO labels ``labels/NAME.txt`` from the mask blobs.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+KINDS = ("auto", "static", "kplanes", "kplanes-ext")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("fit", help="fit a radiance field (with mask head) to a recorded flight")
+    p.add_argument("flight", type=Path, help="recorded flight folder (needs derived/poses.json)")
+    p.add_argument("--kind", choices=KINDS, default="auto", help="field kind; auto = static for now")
+    p.add_argument("--budget-s", type=float, default=300.0, help="wall-clock training budget, s (0: none)")
+    p.add_argument("--iters", type=int, default=20000, help="maximum iterations")
+    p.add_argument("--encoding", choices=("hash", "planes"), default=None, help="spatial encoding")
+    p.add_argument("--sampler", choices=("stratified", "occupancy"), default=None, help="ray sampler")
+    p.add_argument("--samples", type=int, default=None, help="samples per ray")
+    p.add_argument("--batch-rays", type=int, default=None, help="rays per iteration")
+    p.add_argument("--budget-mb", type=float, default=None, help="model size budget, MB")
+    p.add_argument("--holdout-every", type=int, default=8, help="hold out every k-th frame (0: none)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resume", action="store_true", help="continue from derived/fields/static.pt")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default FLIGHT/derived/fields)")
+    p.set_defaults(func=run_fit)
+
+    r = subparsers.add_parser("render", help="render a fitted flight at any poses (images, masks, labels)")
+    r.add_argument("flight", type=Path, help="recorded flight folder with derived/fields/static.pt")
+    r.add_argument("--poses", type=Path, required=True, help="poses file (DESIGN.md §3 format)")
+    r.add_argument("--out", type=Path, required=True, help="output folder")
+    r.add_argument("--masks", action="store_true", help="also write mask PNGs and YOLO labels")
+    r.add_argument("--min-box-px", type=int, default=4, help="smallest mask blob kept as a label, pixels")
+    r.add_argument("--checkpoint", type=Path, default=None, help="default FLIGHT/derived/fields/static.pt")
+    r.add_argument("--threads", type=int, default=None)
+    r.set_defaults(func=run_render)
+
+
+def _torch_env(threads: int | None) -> None:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads
+    import torch
+
+    if threads:
+        torch.set_num_threads(threads)
+
+
+def run_fit(args) -> int:
+    if args.kind in ("kplanes", "kplanes-ext"):
+        raise ValueError(f"--kind {args.kind}: dynamic fields are not implemented yet; use --kind static")
+    if args.budget_s < 0 or args.iters <= 0:
+        raise ValueError("--budget-s must be >= 0 and --iters > 0")
+    _torch_env(args.threads)
+    from fields.data import load_flight
+    from fields.training import FitConfig, evaluate_frames, fit, write_fit_json
+
+    data = load_flight(args.flight)
+    cfg = FitConfig(budget_s=args.budget_s or None, iters=args.iters, holdout_every=args.holdout_every,
+                    threads=args.threads, seed=args.seed)
+    for attr, val in (("encoding", args.encoding), ("sampler", args.sampler), ("n_samples", args.samples),
+                      ("batch_rays", args.batch_rays), ("budget_mb", args.budget_mb)):
+        if val is not None:
+            setattr(cfg, attr, val)
+    out = args.out or args.flight / "derived" / "fields"
+    out.mkdir(parents=True, exist_ok=True)
+    result = fit(data, cfg, out_dir=out, flight=args.flight, resume=args.resume)
+    _, test = data.split(cfg.holdout_every)
+    heldout = evaluate_frames(result.model, data, test, out_dir=out / "heldout") if test else None
+    write_fit_json(out / "fit.json", result, cfg, heldout)
+    n = result.model.param_count()
+    msg = f"{out}: {result.step} steps in {result.train_s:.0f} s, {n} params ({n * 4 / 1e6:.1f} MB)"
+    if heldout:
+        msg += f", held-out PSNR {heldout['psnr']:.2f} dB SSIM {heldout['ssim']:.3f}"
+        if heldout["box_iou_mean"] is not None:
+            msg += f", mask box IoU {heldout['box_iou_mean']:.2f}"
+    print(msg)
+    return 0
+
+
+def run_render(args) -> int:
+    _torch_env(args.threads)
+    import cv2
+    import numpy as np
+
+    from fields.evaluation import boxes_from_mask
+    from fields.training import load_checkpoint
+    from telemetry.posesfile import PosesFile
+
+    poses = PosesFile.load(args.poses)
+    model, _ = load_checkpoint(args.checkpoint or args.flight / "derived" / "fields" / "static.pt")
+    camera = poses.camera
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    if args.masks:
+        (out / "labels").mkdir(exist_ok=True)
+    n_done = n_boxes = 0
+    for i, entry in enumerate(poses.frames):
+        if entry.cam_from_world is None:
+            log.warning("pose %d has no cam_from_world (%s): skipped", i, entry.reason)
+            continue
+        name = Path(entry.frame).stem if entry.frame else f"pose_{i:05d}"
+        r = model.render_image(camera, entry.cam_from_world, with_mask=args.masks)
+        rgb = (np.clip(r["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
+        cv2.imwrite(str(out / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        if args.masks:
+            mask = r["mask"].astype(np.uint8)
+            cv2.imwrite(str(out / f"{name}_mask.png"), mask)
+            boxes = boxes_from_mask(mask, args.min_box_px)
+            n_boxes += len(boxes)
+            (out / "labels" / f"{name}.txt").write_text(
+                "".join(b.yolo(camera.width, camera.height) + "\n" for b in boxes))
+        n_done += 1
+        log.info("rendered %s (%d/%d)", name, i + 1, len(poses.frames))
+    if n_done == 0:
+        raise ValueError(f"{args.poses}: no posed entries to render")
+    print(f"{out}: {n_done} images" + (f", {n_boxes} labelled boxes" if args.masks else ""))
+    return 0

@@ -1,0 +1,334 @@
+"""Fitting a static model to a flight: rays across frames, Adam with a decaying schedule, a wall-clock
+budget and/or an iteration count, held-out evaluation, checkpoint and resume.
+
+Losses: MSE on RGB; ``lambda_dist`` x the distortion loss (pulls each ray's weight onto one surface,
+the main defence against floaters that show up at higher altitudes); ``lambda_mask`` x the
+negative log-likelihood of the frame's filled-box class at the pixel (foreground pixels weighted
+``mask_fg_weight`` since people cover ~1 % of a frame); ``lambda_empty`` x the mean density of random
+points in the upper part of the slab that no training ray saw as opaque (a weak prior that air is
+empty unless the images say otherwise).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fields.data import FlightData, RayBank
+from fields.evaluation import MaskBox, boxes_from_mask, match_boxes, psnr, ssim
+from fields.field import FieldConfig
+from fields.model import SamplerConfig, StaticModel
+from fields.scene import SceneBounds, Sizing, scene_bounds, size_model
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT = "static.pt"
+
+
+@dataclass
+class FitConfig:
+    """Training options; defaults = the measured default of ``uavsim fit`` (see bench/RESULTS.md)."""
+
+    encoding: str = "hash"
+    sampler: str = "stratified"
+    n_samples: int = 32
+    #: stop after this many iterations ...
+    iters: int = 20000
+    #: ... or this many seconds of training (None: no time limit)
+    budget_s: float | None = 300.0
+    batch_rays: int = 1024
+    lr: float = 1e-2
+    #: the MLPs' learning rate relative to ``lr`` (the encoding and background use ``lr``)
+    mlp_lr_scale: float = 1.0
+    #: learning rate at the end of the run, as a fraction of ``lr`` (exponential decay)
+    lr_final: float = 0.1
+    holdout_every: int = 8
+    seed: int = 0
+    #: CPU threads (None: torch's default)
+    threads: int | None = None
+    budget_mb: float = 16.0
+    features: int | None = None
+    view_dependent: bool = False
+    appearance_dim: int = 8
+    hidden: int = 64
+    lambda_dist: float = 2e-3
+    lambda_mask: float = 0.05
+    mask_fg_weight: float = 4.0
+    lambda_empty: float = 0.0
+    occupancy_every: int = 16
+    occupancy_warmup: int = 200
+    checkpoint_every_s: float = 60.0
+    log_every_s: float = 10.0
+    #: cell size multiplier over the finest GSD (1 = as fine as the data)
+    cell_factor: float = 1.0
+
+
+@dataclass
+class FitResult:
+    model: StaticModel
+    step: int
+    train_s: float
+    curve: list[dict] = field(default_factory=list)
+    bounds: SceneBounds | None = None
+    sizing: Sizing | None = None
+
+
+def device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def configure_threads(threads: int | None) -> None:
+    """Set torch's CPU threads; ``OMP_WAIT_POLICY=PASSIVE`` must be in the environment before torch
+    loads (the CLI sets it) or idle OpenMP threads spin and slow a shared machine 2-13x."""
+    if os.environ.get("OMP_WAIT_POLICY", "").upper() != "PASSIVE":
+        log.warning("OMP_WAIT_POLICY is not PASSIVE: CPU training may be much slower on a busy machine")
+    if threads:
+        torch.set_num_threads(int(threads))
+
+
+def build_model(data: FlightData, train_idx: list[int], cfg: FitConfig, flight: Path | None) -> tuple:
+    """Bounds, sizing and a fresh model for the training frames."""
+    Ts = [data.cam_from_world[i] for i in train_idx]
+    bounds = scene_bounds(flight, data.camera, Ts)
+    sizing = size_model(bounds, cfg.encoding, cfg.budget_mb, cfg.features, cell_factor=cfg.cell_factor)
+    fc = FieldConfig(aabb_lo=bounds.lo, aabb_hi=bounds.hi, encoding=sizing.encoding,
+                     resolutions=sizing.resolutions, features=sizing.features, log2_table=sizing.log2_table,
+                     hidden=cfg.hidden, n_images=data.n, appearance_dim=cfg.appearance_dim,
+                     view_dependent=cfg.view_dependent, n_classes=len(data.classes))
+    ext = np.asarray(bounds.extent)
+    grid = tuple(int(min(256, max(8, math.ceil(e / c)))) for e, c in zip(ext, (0.5, 0.5, 0.25), strict=True))
+    sc = SamplerConfig(cfg.sampler, cfg.n_samples, 96, grid)
+    radius = 0.5 * float(np.hypot(ext[0], ext[1]))
+    return StaticModel(fc, sc, bounds.ground_z, radius), bounds, sizing
+
+
+def _optimizer(model: StaticModel, cfg: FitConfig):
+    enc = list(model.field.encoding.parameters()) + list(model.background.parameters())
+    enc_ids = {id(p) for p in enc}
+    rest = [p for p in model.parameters() if id(p) not in enc_ids]
+    groups = [{"params": enc, "lr": cfg.lr, "eps": 1e-15, "scale": 1.0},
+              {"params": rest, "lr": cfg.lr * cfg.mlp_lr_scale, "eps": 1e-15, "scale": cfg.mlp_lr_scale}]
+    try:
+        return torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99), fused=True)
+    except (RuntimeError, TypeError):  # older torch without fused CPU Adam
+        return torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99))
+
+
+def save_checkpoint(path: Path, model: StaticModel, optim, step: int, train_s: float, cfg: FitConfig,
+                    extra: dict) -> None:
+    """Atomic write (temp + rename): a crash never leaves half a checkpoint."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"format": "uavsim-static-1", "model": model.describe(), "state": model.state_dict(),
+                "sampler_state": model.sampler.state_dict(), "optim": optim.state_dict() if optim else None,
+                "step": step, "train_s": train_s, "fit_config": asdict(cfg), **extra}, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path, map_location=None) -> tuple[StaticModel, dict]:
+    """The model (eval mode) and the raw checkpoint dict."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no fitted field (run 'uavsim fit' first)")
+    ck = torch.load(path, map_location=map_location or device(), weights_only=False)
+    if ck.get("format") != "uavsim-static-1":
+        raise ValueError(f"{path}: not a uavsim static field checkpoint")
+    model = StaticModel.from_description(ck["model"])
+    model.load_state_dict(ck["state"])
+    model.sampler.load_state_dict(ck["sampler_state"])
+    if hasattr(model.sampler, "to"):
+        model.sampler.to(map_location or device())
+    return model.to(map_location or device()).eval(), ck
+
+
+def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: Path | None = None,
+        resume: bool = False, on_eval: Callable | None = None, eval_at_s: list[float] | None = None,
+        eval_at_iters: list[int] | None = None) -> FitResult:
+    """Train a static model. ``on_eval(model, step, train_s)`` is called at the listed training
+    seconds / iterations (its own time is not counted). Checkpoints go to ``out_dir/static.pt``."""
+    configure_threads(cfg.threads)
+    dev = device()
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator(device=dev).manual_seed(cfg.seed)
+    train_idx, _ = data.split(cfg.holdout_every)
+    if not train_idx:
+        raise ValueError("no training frames left after holding out every "
+                         f"{cfg.holdout_every}th frame of {data.n}")
+    ckpt = out_dir / CHECKPOINT if out_dir else None
+    if resume and ckpt and ckpt.is_file():
+        model, ck = load_checkpoint(ckpt, dev)
+        model.train()
+        optim = _optimizer(model, cfg)
+        if ck.get("optim"):
+            optim.load_state_dict(ck["optim"])
+        step, train_s = int(ck["step"]), float(ck["train_s"])
+        bounds = SceneBounds(**ck["bounds"]) if ck.get("bounds") else None
+        sizing = Sizing(**ck["sizing"]) if ck.get("sizing") else None
+        curve = list(ck.get("curve", []))
+        if "rng" in ck:
+            gen.set_state(ck["rng"])
+        log.info("resumed from %s at step %d (%.0f s)", ckpt, step, train_s)
+    else:
+        model, bounds, sizing = build_model(data, train_idx, cfg, flight)
+        model = model.to(dev)
+        if hasattr(model.sampler, "to"):
+            model.sampler.to(dev)
+        optim = _optimizer(model, cfg)
+        step, train_s, curve = 0, 0.0, []
+    model.train()
+    log.info("model: %s encoding, %d parameters (%.1f MB), sampler %s", model.field_config.encoding,
+             model.param_count(), model.param_count() * 4 / 1e6, cfg.sampler)
+
+    bank = RayBank(data.camera, data.cam_from_world, dev)
+    images = data.images.to(dev).view(data.n, -1, 3)
+    masks = data.masks.to(dev).view(data.n, -1).long()
+    has_mask = data.has_mask.to(dev)
+    train_t = torch.tensor(train_idx, device=dev)
+    hw = bank.hw
+    use_amp = dev.type == "cuda"
+    scaler = torch.amp.GradScaler("cuda") if use_amp else None
+    fg_w = torch.ones(len(data.classes) + 1, device=dev)
+    fg_w[1:] = cfg.mask_fg_weight
+    evals_s = sorted(eval_at_s or [])
+    evals_i = sorted(eval_at_iters or [])
+
+    def progress() -> float:
+        p = step / max(cfg.iters, 1)
+        if cfg.budget_s:
+            p = max(p, train_s / cfg.budget_s)
+        return min(p, 1.0)
+
+    last_log = last_ckpt = 0.0
+    interactive = sys.stderr.isatty()
+    t_mark = time.perf_counter()
+    loss_ema = None
+    while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
+        lr = cfg.lr * cfg.lr_final ** progress()
+        for g in optim.param_groups:
+            g["lr"] = lr * g.get("scale", 1.0)
+        fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays,), device=dev, generator=gen)]
+        pi = torch.randint(hw, (cfg.batch_rays,), device=dev, generator=gen)
+        o, d = bank.rays(fi, pi)
+        target = images[fi, pi].float() / 255.0
+        with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
+            res = model.render_rays(o, d, fi, train=True, generator=gen, with_mask=cfg.lambda_mask > 0)
+            loss_rgb = torch.mean((res["rgb"] - target) ** 2)
+            loss = loss_rgb
+            if cfg.lambda_dist > 0:
+                loss = loss + cfg.lambda_dist * model.distortion(res)
+            if cfg.lambda_mask > 0:
+                m_ok = has_mask[fi]
+                if m_ok.any():
+                    tgt = masks[fi, pi][m_ok]
+                    nll = -torch.log(res["mask_probs"][m_ok].clamp_min(1e-6)).gather(1, tgt[:, None])[:, 0]
+                    loss = loss + cfg.lambda_mask * (nll * fg_w[tgt]).mean()
+            if cfg.lambda_empty > 0:
+                lo, hi = model.field.lo, model.field.hi
+                u = torch.rand(4096, 3, device=dev, generator=gen)
+                u[:, 2] = 0.3 + 0.7 * u[:, 2]  # upper 70 % of the slab
+                loss = loss + cfg.lambda_empty * model.field.density(lo + u * (hi - lo)).clamp_max(10).mean()
+        optim.zero_grad(set_to_none=True)
+        if scaler:
+            scaler.scale(loss).backward()
+            scaler.step(optim)
+            scaler.update()
+        else:
+            loss.backward()
+            optim.step()
+        step += 1
+        if cfg.sampler == "occupancy" and step >= cfg.occupancy_warmup and step % cfg.occupancy_every == 0:
+            model.sampler.update(model.field.density, model.field.lo, model.field.hi, generator=gen)
+        now = time.perf_counter()
+        train_s += now - t_mark
+        t_mark = now
+        lv = float(loss_rgb.detach())
+        loss_ema = lv if loss_ema is None else 0.95 * loss_ema + 0.05 * lv
+        if train_s - last_log >= cfg.log_every_s:
+            last_log = train_s
+            p = -10 * math.log10(max(loss_ema, 1e-10))
+            curve.append({"step": step, "train_s": round(train_s, 2), "train_psnr": round(p, 2), "lr": lr})
+            msg = f"step {step} {train_s:.0f}s train PSNR {p:.2f} dB lr {lr:.2e}"
+            if interactive:
+                print(f"\r{msg}   ", end="", file=sys.stderr, flush=True)
+            log.info(msg)
+        hook = False
+        while evals_s and train_s >= evals_s[0]:
+            evals_s.pop(0)
+            hook = True
+        while evals_i and step >= evals_i[0]:
+            evals_i.pop(0)
+            hook = True
+        if hook and on_eval:
+            model.eval()
+            on_eval(model, step, train_s)
+            model.train()
+            t_mark = time.perf_counter()
+        if ckpt and train_s - last_ckpt >= cfg.checkpoint_every_s:
+            last_ckpt = train_s
+            save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
+            t_mark = time.perf_counter()
+    if interactive:
+        print(file=sys.stderr)
+    model.eval()
+    if ckpt:
+        save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
+    return FitResult(model, step, train_s, curve, bounds, sizing)
+
+
+def _extra(bounds, sizing, curve, gen) -> dict:
+    return {"bounds": bounds.to_json() if bounds else None, "sizing": asdict(sizing) if sizing else None,
+            "curve": curve, "rng": gen.get_state()}
+
+
+def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], min_box_px: float = 6.0,
+                    out_dir: Path | None = None) -> dict:
+    """PSNR / SSIM of rendered frames against the recorded images (mean appearance, as for a novel
+    view), and box IoU of mask blobs against the frames' label boxes (boxes >= ``min_box_px`` on
+    their shorter side). Optionally writes side-by-side PNGs."""
+    import cv2
+
+    rows, ious = [], []
+    for i in indices:
+        r = model.render_image(data.camera, data.cam_from_world[i])
+        gt = data.images[i].numpy()
+        row = {"frame": data.names[i], "psnr": psnr(r["rgb"], gt), "ssim": ssim(r["rgb"], gt)}
+        if bool(data.has_mask[i]):
+            truth = [MaskBox(c, x0, y0, x1, y1, 0) for c, x0, y0, x1, y1 in data.boxes[i]
+                     if min(x1 - x0, y1 - y0) >= min_box_px]
+            found = match_boxes(truth, boxes_from_mask(r["mask"]))
+            ious += found
+            row["box_iou"] = float(np.mean(found)) if found else None
+        rows.append(row)
+        if out_dir:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            both = np.concatenate([(np.clip(r["rgb"], 0, 1) * 255).astype(np.uint8), gt], axis=1)
+            cv2.imwrite(str(out_dir / f"{Path(data.names[i]).stem}_render_vs_truth.png"),
+                        cv2.cvtColor(both, cv2.COLOR_RGB2BGR))
+    summary = {"frames": rows, "psnr": float(np.mean([r["psnr"] for r in rows])) if rows else None,
+               "ssim": float(np.mean([r["ssim"] for r in rows])) if rows else None,
+               "box_iou_mean": float(np.mean(ious)) if ious else None,
+               "box_iou_ge_0.5": float(np.mean(np.asarray(ious) >= 0.5)) if ious else None,
+               "boxes_evaluated": len(ious)}
+    return summary
+
+
+def write_fit_json(path: Path, result: FitResult, cfg: FitConfig, heldout: dict | None) -> None:
+    n = result.model.param_count()
+    payload = {"kind": "static", "encoding": cfg.encoding, "sampler": cfg.sampler, "steps": result.step,
+               "train_s": round(result.train_s, 2), "params": n, "mb": round(n * 4 / 1e6, 2),
+               "sizing": asdict(result.sizing) if result.sizing else None,
+               "bounds": result.bounds.to_json() if result.bounds else None,
+               "heldout": heldout, "curve": result.curve, "config": asdict(cfg)}
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=1, default=float) + "\n")
+    os.replace(tmp, path)

@@ -1,0 +1,158 @@
+"""Fitting, checkpoints and the fit/render commands on a tiny simulated flight."""
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from agent.cli import main
+from fields.data import FlightDataError, box_mask, load_flight
+from fields.evaluation import boxes_from_mask, match_boxes, psnr, ssim
+from fields.scene import scene_bounds, size_model
+from fields.simscene import novel_poses_file
+from fields.training import FitConfig, fit, load_checkpoint
+from telemetry.frames import orbit_pose
+
+TINY = dict(iters=30, budget_s=None, batch_rays=256, n_samples=16, budget_mb=1.0, threads=1,
+            log_every_s=1e9, checkpoint_every_s=1e9)
+
+
+def test_load_flight_masks_from_labels(tiny_flight):
+    d = load_flight(tiny_flight)
+    assert d.n == 8 and d.images.shape == (8, 48, 64, 3)
+    assert d.has_mask.all()
+    assert d.masks.max() >= 1  # some people
+    train, test = d.split(8)
+    assert test == [7] and len(train) == 7
+
+
+def test_box_mask_empty_and_bad_lines():
+    assert box_mask("", 10, 8, 3).sum() == 0
+    m = box_mask("1 0.5 0.5 0.2 0.25\n", 10, 8, 3)
+    assert m.max() == 2 and (m > 0).sum() == 2 * 2
+    with pytest.raises(FlightDataError, match="class 7"):
+        box_mask("7 0.5 0.5 0.1 0.1", 10, 8, 3)
+    with pytest.raises(FlightDataError, match="expected"):
+        box_mask("1 0.5", 10, 8, 3)
+
+
+def test_bounds_and_sizing_from_telemetry(tiny_flight):
+    d = load_flight(tiny_flight)
+    b = scene_bounds(tiny_flight, d.camera, d.cam_from_world)
+    assert b.source == "telemetry" and b.ground_z == 0.0
+    assert b.lo[2] < 0 < b.hi[2] <= 0.7 * 15 + 1e-9
+    s = size_model(b, "hash", budget_mb=1.0)
+    n = sum(min((r[0] + 1) * (r[1] + 1) * (r[2] + 1), 2**s.log2_table) for r in s.resolutions) * s.features
+    assert n * 4 <= 1e6
+    assert s.finest_cell_m == pytest.approx(b.finest_gsd_m)
+    p = size_model(b, "planes", budget_mb=1.0)
+    assert p.resolutions[0][0] < p.resolutions[-1][0]
+
+
+def test_bounds_from_sparse_points(tmp_path, tiny_flight):
+    flight = tmp_path / "f"
+    shutil.copytree(tiny_flight, flight)
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-10, 10, (500, 2)), np.r_[rng.normal(2.0, 0.01, 480), rng.uniform(2, 6, 20)]]
+    ply = flight / "derived" / "points.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 500\nproperty float x\nproperty float y\n"
+                   "property float z\nend_header\n" + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+    d = load_flight(flight)
+    b = scene_bounds(flight, d.camera, d.cam_from_world)
+    assert b.source == "sparse points"
+    assert abs(b.ground_z - 2.0) < 0.05 and b.hi[2] > 5.0
+
+
+def test_black_and_saturated_frames_train_finite(tmp_path, tiny_flight):
+    flight = tmp_path / "f"
+    shutil.copytree(tiny_flight, flight)
+    frames = sorted((flight / "frames").iterdir())
+    cv2.imwrite(str(frames[0]), np.zeros((48, 64, 3), np.uint8))
+    cv2.imwrite(str(frames[1]), np.full((48, 64, 3), 255, np.uint8))
+    (flight / "labels" / (frames[2].stem + ".txt")).write_text("")  # a frame with no people
+    d = load_flight(flight)
+    res = fit(d, FitConfig(**TINY))
+    for p in res.model.parameters():
+        assert torch.isfinite(p).all()
+    out = res.model.render_image(d.camera, d.cam_from_world[0])
+    assert np.isfinite(out["rgb"]).all() and out["rgb"].min() >= 0 and out["rgb"].max() <= 1
+
+
+@pytest.mark.parametrize("encoding,sampler", [("hash", "occupancy"), ("planes", "stratified")])
+def test_checkpoint_roundtrip_renders_identically_and_resumes(tmp_path, tiny_flight, encoding, sampler):
+    d = load_flight(tiny_flight)
+    cfg = FitConfig(**{**TINY, "encoding": encoding, "sampler": sampler, "occupancy_warmup": 5,
+                       "occupancy_every": 5})
+    res = fit(d, cfg, out_dir=tmp_path)
+    T = orbit_pose(50, 10, -80, 30)
+    a = res.model.render_image(d.camera, T)
+    model, ck = load_checkpoint(tmp_path / "static.pt")
+    b = model.render_image(d.camera, T)
+    assert np.array_equal(a["rgb"], b["rgb"]) and np.array_equal(a["mask"], b["mask"])
+    assert ck["step"] == 30
+    res2 = fit(d, FitConfig(**{**cfg.__dict__, "iters": 40}), out_dir=tmp_path, resume=True)
+    assert res2.step == 40
+
+
+def test_metrics_on_known_images():
+    a = np.zeros((16, 16, 3))
+    b = np.full((16, 16, 3), 0.1)
+    assert psnr(a, b) == pytest.approx(20.0)
+    assert psnr(a, a) == float("inf")
+    assert ssim(b, b) == pytest.approx(1.0)
+    m = np.zeros((20, 20), np.uint8)
+    m[2:8, 3:6] = 1
+    m[10:12, 10:12] = 3
+    boxes = boxes_from_mask(m, min_area_px=4)
+    assert [(bx.class_id, bx.x0, bx.y0, bx.x1, bx.y1) for bx in boxes] == [(0, 3, 2, 6, 8), (2, 10, 10, 12, 12)]
+    assert boxes_from_mask(np.zeros((5, 5), np.uint8)) == []
+    assert match_boxes(boxes, boxes) == [1.0, 1.0]
+
+
+def test_cli_fit_then_render(tmp_path, tiny_flight, capsys):
+    flight = tmp_path / "f"
+    shutil.copytree(tiny_flight, flight)
+    assert main(["fit", str(flight), "--kind", "static", "--iters", "20", "--budget-s", "0", "--samples", "16",
+                 "--batch-rays", "256", "--budget-mb", "1", "--threads", "1"]) == 0
+    info = json.loads((flight / "derived" / "fields" / "fit.json").read_text())
+    assert info["steps"] == 20 and info["params"] > 0 and info["mb"] <= 1.0
+    assert info["heldout"]["psnr"] > 0 and info["sizing"]["reasoning"]
+    d = load_flight(flight)
+    poses = novel_poses_file(d.camera, [orbit_pose(35, 15, -70, 0), orbit_pose(50, 10, -80, 90)])
+    poses.frames[0].frame = "000003.png"
+    poses.save(tmp_path / "novel.json")
+    out = tmp_path / "out"
+    assert main(["render", str(flight), "--poses", str(tmp_path / "novel.json"), "--out", str(out), "--masks"]) == 0
+    assert (out / "000003.png").is_file() and (out / "pose_00001.png").is_file()
+    assert (out / "pose_00001_mask.png").is_file() and (out / "labels" / "pose_00001.txt").is_file()
+    img = cv2.imread(str(out / "pose_00001.png"))
+    assert img.shape == (48, 64, 3)
+
+
+def test_cli_errors(tmp_path, tiny_flight, capsys):
+    assert main(["fit", str(tmp_path / "nope"), "--kind", "static"]) == 2
+    assert "no such flight" in capsys.readouterr().err
+    assert main(["fit", str(tiny_flight), "--kind", "kplanes"]) == 2
+    assert "not implemented yet" in capsys.readouterr().err
+    assert main(["render", str(tmp_path), "--poses", str(tmp_path / "p.json"), "--out", str(tmp_path / "o")]) == 2
+    assert "no such poses file" in capsys.readouterr().err
+
+
+def test_training_learns_the_frames(tiny_flight):
+    d = load_flight(tiny_flight)
+    cfg = FitConfig(**{**TINY, "iters": 1})
+    before = fit(d, cfg)
+    p0 = psnr(before.model.render_image(d.camera, d.cam_from_world[0], with_mask=False)["rgb"], d.images[0].numpy())
+    after = fit(d, FitConfig(**{**TINY, "iters": 100, "batch_rays": 256, "lr_final": 1.0}))
+    p1 = psnr(after.model.render_image(d.camera, d.cam_from_world[0], with_mask=False)["rgb"], d.images[0].numpy())
+    assert p1 > p0 + 3.0, (p0, p1)
+
+
+def test_heldout_box_iou_uses_label_boxes(tiny_flight):
+    d = load_flight(tiny_flight)
+    assert len(d.boxes[0]) == len((tiny_flight / "labels" / "000000.txt").read_text().splitlines())
+    c, x0, y0, x1, y1 = d.boxes[0][0]
+    assert 0 <= x0 < x1 <= 64 and 0 <= y0 < y1 <= 48
