@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed
 TORCH_PIN ?= torch==2.13.0
 OUT    ?= out
 
-.PHONY: venv demo test test-slow lint bench clean
+.PHONY: venv demo demo-full test test-slow lint bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -21,7 +21,10 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	OMP_WAIT_POLICY=PASSIVE $(VENV)/bin/uavsim sim render --altitude 15 --radius 20 --pitch -50 --out $(OUT)/quicklook
+	OMP_WAIT_POLICY=PASSIVE $(VENV)/bin/uavsim demo --quick --out $(OUT)/demo
+
+demo-full: $(STAMP)
+	OMP_WAIT_POLICY=PASSIVE $(VENV)/bin/uavsim demo --out $(OUT)/demo-full
 
 test: $(STAMP)
 	OMP_WAIT_POLICY=PASSIVE $(PY) -m pytest -q

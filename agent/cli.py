@@ -15,17 +15,17 @@ import sys
 
 #: Modules that add subcommands, in help order. Each has ``register(subparsers)``.
 COMMAND_MODULES = [
-    "sim.cli",
-    "sim.flight",
-    "telemetry.cli",
-    "fields.synth_flight",
-    "agent.demo",
-    "agent.replay",
-    "agent.daemon",
-    "fields.cli",
-    "agent.bench_cli",
-    "telemetry.sfm_cli",
-    "export.cli",
+    "agent.demo",  # the main job
+    "sim.cli",  # sim render
+    "sim.flight",  # sim-flight
+    "telemetry.cli",  # poses, tlog
+    "telemetry.sfm_cli",  # import-photos, sfm-photos
+    "fields.cli",  # fit, render
+    "fields.synth_flight",  # synth
+    "export.cli",  # detector train|export|eval, detect
+    "agent.replay",  # replay
+    "agent.daemon",  # agent
+    "agent.bench_cli",  # bench
 ]
 
 log = logging.getLogger("uavsim")
