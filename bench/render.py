@@ -18,6 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
+from fields.mask_boxes import box_iou  # noqa: E402
 from sim.world import make_world  # noqa: E402
 from telemetry.camera import Camera  # noqa: E402
 from telemetry.frames import orbit_pose  # noqa: E402
@@ -29,14 +30,6 @@ VIEWS = [(15, 20, -50, 0), (15, 20, -90, 60), (35, 25, -55, 120), (50, 30, -60, 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
     return float("inf") if mse == 0 else float(10 * np.log10(255.0**2 / mse))
-
-
-def box_iou(a, b) -> float:
-    ix = max(0.0, min(a.x1, b.x1) - max(a.x0, b.x0))
-    iy = max(0.0, min(a.y1, b.y1) - max(a.y0, b.y0))
-    inter = ix * iy
-    union = a.width * a.height + b.width * b.height - inter
-    return inter / union if union > 0 else 0.0
 
 
 def main() -> None:

@@ -6,9 +6,11 @@ Images are float arrays in [0, 1] (H, W, 3) or uint8 (converted); masks are (H, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
+
+from fields.mask_boxes import MaskBox, box_iou, boxes_from_class_map
+
+__all__ = ["psnr", "ssim", "boxes_from_mask", "box_iou", "match_boxes", "MaskBox"]
 
 
 def _float(img) -> np.ndarray:
@@ -45,46 +47,9 @@ def ssim(a, b) -> float:
     return float(s.mean())
 
 
-@dataclass
-class MaskBox:
-    """A box from a mask blob: class id (0-based object class), pixel edges, pixel count."""
-
-    class_id: int
-    x0: float
-    y0: float
-    x1: float
-    y1: float
-    area_px: int
-
-    def yolo(self, width: int, height: int) -> str:
-        cx, cy = (self.x0 + self.x1) / 2 / width, (self.y0 + self.y1) / 2 / height
-        return f"{self.class_id} {cx:.6f} {cy:.6f} {(self.x1 - self.x0) / width:.6f} {(self.y1 - self.y0) / height:.6f}"
-
-
 def boxes_from_mask(mask: np.ndarray, min_area_px: int = 4) -> list[MaskBox]:
-    """One box per 8-connected blob of each class; blobs smaller than ``min_area_px`` are dropped."""
-    import cv2
-
-    out = []
-    m = np.asarray(mask)
-    for cls in np.unique(m):
-        if cls == 0:
-            continue
-        n, _, stats, _ = cv2.connectedComponentsWithStats((m == cls).astype(np.uint8), connectivity=8)
-        for i in range(1, n):
-            x, y, w, h, area = stats[i]
-            if area >= min_area_px:
-                out.append(MaskBox(int(cls) - 1, float(x), float(y), float(x + w), float(y + h), int(area)))
-    return out
-
-
-def box_iou(a, b) -> float:
-    """IoU of two boxes with ``x0, y0, x1, y1`` attributes (pixel edges)."""
-    ix = max(0.0, min(a.x1, b.x1) - max(a.x0, b.x0))
-    iy = max(0.0, min(a.y1, b.y1) - max(a.y0, b.y0))
-    inter = ix * iy
-    union = (a.x1 - a.x0) * (a.y1 - a.y0) + (b.x1 - b.x0) * (b.y1 - b.y0) - inter
-    return inter / union if union > 0 else 0.0
+    """One box per 8-connected blob of each class of a class-id mask (0 background, k+1 class k)."""
+    return boxes_from_class_map(mask, min_area_px)
 
 
 def match_boxes(truth: list, predicted: list) -> list[float]:

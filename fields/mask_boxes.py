@@ -93,6 +93,33 @@ def boxes_from_probabilities(prob: np.ndarray, rules: BoxRules | None = None) ->
     return boxes
 
 
+def boxes_from_class_map(class_map: np.ndarray, min_area_px: int = 4) -> list[MaskBox]:
+    """Boxes from a hard class map (0 background, c + 1 class c): one per 8-connected blob of each class."""
+    m = np.asarray(class_map)
+    boxes = []
+    for c in np.unique(m):
+        if c == 0:
+            continue
+        labels, _ = ndimage.label(m == c, structure=_EIGHT)
+        for k, sl in enumerate(ndimage.find_objects(labels), start=1):
+            if sl is None:
+                continue
+            piece = labels[sl] == k
+            box = _box_of(piece, sl, piece.astype(np.float32), int(c) - 1)
+            if box is not None and box.area_px >= min_area_px:
+                boxes.append(box)
+    return boxes
+
+
+def box_iou(a, b) -> float:
+    """IoU of two boxes with ``x0, y0, x1, y1`` attributes (pixel edges)."""
+    ix = max(0.0, min(a.x1, b.x1) - max(a.x0, b.x0))
+    iy = max(0.0, min(a.y1, b.y1) - max(a.y0, b.y0))
+    inter = ix * iy
+    union = (a.x1 - a.x0) * (a.y1 - a.y0) + (b.x1 - b.x0) * (b.y1 - b.y0) - inter
+    return inter / union if union > 0 else 0.0
+
+
 def boxes_from_instances(instance_ids: np.ndarray, class_of: dict[int, int],
                          rules: BoxRules | None = None) -> list[MaskBox]:
     """Boxes from a hard instance map (0 = background), one per instance: no merge or split."""

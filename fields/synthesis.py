@@ -30,7 +30,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from fields.mask_boxes import BoxRules, MaskBox, boxes_from_probabilities
+from fields.mask_boxes import BoxRules, MaskBox, box_iou, boxes_from_probabilities
 from telemetry.camera import Camera
 from telemetry.posesfile import Origin, PoseEntry, PosesFile
 
@@ -171,15 +171,6 @@ class BoxMatch:
                         self.false_negatives + other.false_negatives, self.ious + other.ious)
 
 
-def box_iou(a, b) -> float:
-    """IoU of two boxes with ``x0, y0, x1, y1`` pixel edges."""
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = ix * iy
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0
-
-
 def match_boxes(pred: list, truth: list, iou_threshold: float = 0.5, min_truth_height_px: float = 0.0,
                 same_class: bool = True) -> BoxMatch:
     """Greedy one-to-one matching of predicted to true boxes (objects with class_id, x0..y1).
@@ -187,9 +178,6 @@ def match_boxes(pred: list, truth: list, iou_threshold: float = 0.5, min_truth_h
     Truth boxes shorter than ``min_truth_height_px`` are ignored (neither missed nor matched, and
     predictions matching them are not counted as false positives), as detectors are scored.
     """
-    def xyxy(b):
-        return (b.x0, b.y0, b.x1, b.y1)
-
     small = [t for t in truth if (t.y1 - t.y0) < min_truth_height_px]
     big = [t for t in truth if (t.y1 - t.y0) >= min_truth_height_px]
     pairs = []
@@ -197,7 +185,7 @@ def match_boxes(pred: list, truth: list, iou_threshold: float = 0.5, min_truth_h
         for j, t in enumerate(big):
             if same_class and p.class_id != t.class_id:
                 continue
-            iou = box_iou(xyxy(p), xyxy(t))
+            iou = box_iou(p, t)
             if iou >= iou_threshold:
                 pairs.append((iou, i, j))
     used_p, used_t, ious = set(), set(), []
@@ -210,7 +198,7 @@ def match_boxes(pred: list, truth: list, iou_threshold: float = 0.5, min_truth_h
     for i, p in enumerate(pred):
         if i in used_p:
             continue
-        if any(box_iou(xyxy(p), xyxy(t)) >= iou_threshold for t in small):
+        if any(box_iou(p, t) >= iou_threshold for t in small):
             continue
         fp += 1
     return BoxMatch(len(used_p), fp, len(big) - len(used_t), ious)
