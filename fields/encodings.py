@@ -86,6 +86,10 @@ class HashGrid(nn.Module):
             dense.append(is_dense)
             offsets.append(offsets[-1] + n)
         self.sizes, self.dense = sizes, dense
+        # Levels small enough to store densely are the coarse ones, a prefix of the list.
+        self.n_dense_prefix = next((i for i, d in enumerate(dense) if not d), len(dense))
+        if any(dense[self.n_dense_prefix:]):
+            raise ValueError(f"dense hash-grid levels must precede hashed ones (resolutions ascending), got {dense}")
         self.n_levels = len(sizes)
         self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.int64), persistent=False)
         self.register_buffer("res", torch.tensor(config.resolutions, dtype=torch.float32).reshape(-1, 3),
@@ -117,17 +121,24 @@ class HashGrid(nn.Module):
         b0 = torch.stack([base, base + 1], dim=-1)  # (N, L, 3, 2)
         wts = torch.stack([1 - frac, frac], dim=-1)  # (N, L, 3, 2)
         w = (wts[:, :, 2, :, None, None] * wts[:, :, 1, None, :, None] * wts[:, :, 0, None, None, :])
-        # hashed: XOR of coordinate * prime, int32 wrapping; table sizes are powers of two -> mask
-        hx, hy, hz = b0[:, :, 0] * PRIMES[0], b0[:, :, 1] * PRIMES[1], b0[:, :, 2] * PRIMES[2]
-        h = hz[:, :, :, None, None] ^ hy[:, :, None, :, None] ^ hx[:, :, None, None, :]
-        h = h & self.hash_mask.view(1, -1, 1, 1, 1)
-        # dense: x + y*(rx+1) + z*(rx+1)*(ry+1), exact for the levels that fit
-        rx = self.res_i[:, 0].view(1, -1, 1) + 1
-        ry = self.res_i[:, 1].view(1, -1, 1) + 1
-        dx, dy, dz = b0[:, :, 0], b0[:, :, 1] * rx, b0[:, :, 2] * (rx * ry)
-        d = dz[:, :, :, None, None] + dy[:, :, None, :, None] + dx[:, :, None, None, :]
-        idx = torch.where(self.dense_mask.view(1, -1, 1, 1, 1), d, h).to(torch.int64)
-        idx = idx + self.offsets.view(1, -1, 1, 1, 1)
+        # Dense levels (coarse) come first; each level computes only its own kind of index.
+        k = self.n_dense_prefix
+        parts = []
+        if k > 0:
+            # dense: x + y*(rx+1) + z*(rx+1)*(ry+1), exact for the levels that fit
+            bd = b0[:, :k]
+            rx = self.res_i[:k, 0].view(1, -1, 1) + 1
+            ry = self.res_i[:k, 1].view(1, -1, 1) + 1
+            dx, dy, dz = bd[:, :, 0], bd[:, :, 1] * rx, bd[:, :, 2] * (rx * ry)
+            parts.append(dz[:, :, :, None, None] + dy[:, :, None, :, None] + dx[:, :, None, None, :])
+        if k < self.n_levels:
+            # hashed: XOR of coordinate * prime, int32 wrapping; table sizes are powers of two -> mask
+            bh = b0[:, k:]
+            hx, hy, hz = bh[:, :, 0] * PRIMES[0], bh[:, :, 1] * PRIMES[1], bh[:, :, 2] * PRIMES[2]
+            h = hz[:, :, :, None, None] ^ hy[:, :, None, :, None] ^ hx[:, :, None, None, :]
+            parts.append(h & self.hash_mask[k:].view(1, -1, 1, 1, 1))
+        idx = parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
+        idx = idx.to(torch.int64) + self.offsets.view(1, -1, 1, 1, 1)
         return idx.reshape(-1, 8), w.reshape(-1, 8)
 
     def forward(self, x01: torch.Tensor) -> torch.Tensor:
