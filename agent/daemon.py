@@ -175,9 +175,8 @@ class Agent:
     def _camera_model(self):
         from telemetry.camera import Camera
 
-        if self.hardware is not None:
-            return self.frames.camera
-        return Camera.load(self.config.camera.camera_json)
+        camera = getattr(self.frames, "camera", None)  # the simulated camera knows its intrinsics
+        return camera if camera is not None else Camera.load(self.config.camera.camera_json)
 
     def open(self) -> None:
         from telemetry.link import CompanionLink, LinkConfig
@@ -204,9 +203,9 @@ class Agent:
         if cfg.camera.source == "sim":
             self.frames = self.hardware.frame_source(cfg.camera.fps)
         else:
-            from agent.camera_source import OpenCVSource
+            from agent.camera_source import open_source
 
-            self.frames = OpenCVSource(cfg.camera.source)
+            self.frames = open_source(cfg.camera.source, cfg.camera.fps)
         self._camera_model()  # fail early on a bad camera.json
         model = cfg.detector.model
         if model and Path(model).is_file():
