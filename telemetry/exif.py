@@ -178,31 +178,6 @@ def read_photo(path: Path) -> PhotoInfo:
     return PhotoInfo(path, width, height, t_us, t_src, lat, lon, alt, f_px, f_src, model)
 
 
-# -- geodesy (WGS84, float64) -------------------------------------------------------------------
-_A = 6378137.0
-_F = 1.0 / 298.257223563
-_E2 = _F * (2.0 - _F)
-
-
-def geodetic_to_ecef(lat_deg, lon_deg, alt_m) -> np.ndarray:
-    """WGS84 geodetic (deg, deg, m) to ECEF metres, (..., 3)."""
-    lat, lon = np.radians(lat_deg), np.radians(lon_deg)
-    n = _A / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
-    return np.stack([(n + alt_m) * np.cos(lat) * np.cos(lon), (n + alt_m) * np.cos(lat) * np.sin(lon),
-                     (n * (1.0 - _E2) + alt_m) * np.sin(lat)], axis=-1)
-
-
-def geodetic_to_enu(lat_deg, lon_deg, alt_m, origin_lat, origin_lon, origin_alt) -> np.ndarray:
-    """WGS84 geodetic to local ENU metres at the origin (float64, exact through ECEF)."""
-    d = geodetic_to_ecef(np.asarray(lat_deg, float), np.asarray(lon_deg, float), np.asarray(alt_m, float)) \
-        - geodetic_to_ecef(origin_lat, origin_lon, origin_alt)
-    la, lo = math.radians(origin_lat), math.radians(origin_lon)
-    R = np.array([[-math.sin(lo), math.cos(lo), 0.0],
-                  [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
-                  [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)]])
-    return d @ R.T
-
-
 # -- import -------------------------------------------------------------------------------------
 def import_photos(src_dir: Path, out_dir: Path, sigma_h_m: float = 3.0, sigma_v_m: float = 5.0,
                   focal_px: float | None = None) -> dict:

@@ -14,8 +14,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from telemetry.camera import Camera
-from telemetry.exif import geodetic_to_enu
 from telemetry.exports import write_derived
+from telemetry.geodesy import geodetic_to_enu
 from telemetry.posesfile import Origin
 from telemetry.sfm import Prior, SfmInputError, SfmOptions, SfmResult, refine_poses
 
@@ -69,7 +69,7 @@ def read_position_priors(flight_dir: Path, frames: list[tuple[str, int]]) -> tup
     for name, t in frames:
         row = rows.get(name)
         g = geo(row) if row else None
-        pos = geodetic_to_enu(*g, origin.lat, origin.lon, origin.alt) if g else None
+        pos = geodetic_to_enu(*g, (origin.lat, origin.lon, origin.alt)) if g else None
         try:
             sh, sv = float(row["sigma_h_m"]), float(row["sigma_v_m"])
         except (TypeError, KeyError, ValueError):

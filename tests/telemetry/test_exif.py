@@ -14,7 +14,8 @@ from PIL.TiffImagePlugin import IFDRational
 
 from agent.cli import main as cli_main
 from telemetry.camera import Camera
-from telemetry.exif import PhotoImportError, focal_length_px, geodetic_to_enu, import_photos, read_photo
+from telemetry.exif import PhotoImportError, focal_length_px, import_photos, read_photo
+from telemetry.geodesy import geodetic_to_enu
 from telemetry.sfm_flight import read_frames_csv, read_position_priors
 
 SENECA = Path("/work/shared/data/seneca")
@@ -131,10 +132,10 @@ def test_no_focal_information_gives_a_guess(tmp_path):
 
 
 def test_geodetic_to_enu():
-    np.testing.assert_allclose(geodetic_to_enu(41.0, -83.0, 300.0, 41.0, -83.0, 300.0), 0.0, atol=1e-9)
-    e = geodetic_to_enu(41.0, -83.0 + 1e-4, 300.0, 41.0, -83.0, 300.0)
+    np.testing.assert_allclose(geodetic_to_enu(41.0, -83.0, 300.0, (41.0, -83.0, 300.0)), 0.0, atol=1e-9)
+    e = geodetic_to_enu(41.0, -83.0 + 1e-4, 300.0, (41.0, -83.0, 300.0))
     assert e[0] == pytest.approx(8.42, abs=0.01) and abs(e[1]) < 1e-3
-    up = geodetic_to_enu(41.0, -83.0, 350.0, 41.0, -83.0, 300.0)
+    up = geodetic_to_enu(41.0, -83.0, 350.0, (41.0, -83.0, 300.0))
     np.testing.assert_allclose(up, [0, 0, 50.0], atol=1e-6)
 
 
