@@ -45,10 +45,6 @@ HEAVY_MODULES = ("torch", "pycolmap")
 PREARM_BUFFER_S = 5.0
 
 
-def _now_us() -> int:
-    return time.time_ns() // 1000
-
-
 def _disk_usage_bytes(root: Path) -> int:
     total = 0
     for dirpath, _, files in os.walk(root):

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from agent.stages import StageRunner
@@ -47,7 +47,6 @@ class ReplayOptions:
     test_altitudes_m: tuple[float, ...] = (15.0, 35.0, 40.0, 45.0, 50.0)
     test_images_per_altitude: int = 24
     threads: int | None = None
-    extra: dict = field(default_factory=dict)
 
 
 def _derived(flight: Path) -> Path:
