@@ -69,12 +69,12 @@ def render_split(root: Path, seeds, n_images: int, rng_seed: int) -> None:
         print(f"  {root.name}: world {seed} done ({k}/{n_images})", flush=True)
 
 
-def stage_data(n_train: int, n_val: int) -> Path:
+def stage_data(n_train: int, n_val: int, train_seeds=TRAIN_SEEDS) -> Path:
     from sim.people import CLASS_NAMES
 
     data = WORK / "data"
     t0 = time.perf_counter()
-    render_split(data / "train", TRAIN_SEEDS, n_train, 1)
+    render_split(data / "train", train_seeds, n_train, 1)
     render_split(data / "val", VAL_SEEDS, n_val, 2)
     names = "\n".join(f"  {i}: {n}" for i, n in enumerate(CLASS_NAMES))
     yaml = data / "data.yaml"
@@ -188,6 +188,7 @@ def main() -> None:
     ap.add_argument("--stage", default="all", choices=["all", "data", "train", "latency"])
     ap.add_argument("--train-images", type=int, default=360)
     ap.add_argument("--val-images", type=int, default=80)
+    ap.add_argument("--train-seeds", default="10-15", help="world seeds of the training split, e.g. 10-19")
     ap.add_argument("--epochs", type=int, default=30)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--nbs", type=int, default=16, help="nominal batch (gradient accumulation); 16 = none")
@@ -199,7 +200,8 @@ def main() -> None:
     args = ap.parse_args()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if args.stage in ("all", "data"):
-        yaml = stage_data(args.train_images, args.val_images)
+        lo, hi = (int(v) for v in args.train_seeds.split("-"))
+        yaml = stage_data(args.train_images, args.val_images, tuple(range(lo, hi + 1)))
     else:
         yaml = WORK / "data" / "data.yaml"
     if args.stage in ("all", "train"):
