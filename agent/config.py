@@ -78,6 +78,9 @@ class ProcessingConfig:
     #: replay options: field training budget, s; quick mode for small boards
     fit_budget_s: float = 300.0
     quick: bool = False
+    #: detector checkpoint the new detectors are fine-tuned from: "auto" (the cached base of
+    #: `uavsim detector pretrain`), "none" (from scratch) or a .pt path
+    base_detector: str = "auto"
 
 
 @dataclass(frozen=True)

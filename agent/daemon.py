@@ -326,7 +326,8 @@ class Agent:
             self._set_state("idle")
             return
         cmd = [sys.executable, "-m", "agent.processing", str(flight), "--current", self.config.detector.model,
-               "--fit-budget-s", str(self.config.processing.fit_budget_s)]
+               "--fit-budget-s", str(self.config.processing.fit_budget_s),
+               "--base", self.config.processing.base_detector]
         if self.config.processing.quick:
             cmd.append("--quick")
         nice = self.config.processing.nice

@@ -28,7 +28,6 @@ SELF_LABEL_CONF = 0.5
 def self_label(flight: Path, model: Path, conf: float = SELF_LABEL_CONF) -> int:
     """Write ``labels/`` and ``classes.txt`` from the detector's detections; returns boxes written."""
     from export.infer import Detector, read_image
-
     from telemetry.flightlog import read_flight
 
     rec = read_flight(flight)
@@ -73,13 +72,14 @@ def decide(flight: Path, current: Path | None, imgsz: int) -> dict:
 
 def main(argv=None) -> int:
     from agent.cli import configure_logging
-    from agent.replay import ReplayOptions, replay
+    from agent.replay import ReplayOptions, replay, resolve_base
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("flight", type=Path)
     ap.add_argument("--current", default="", help="the detector in use (.onnx)")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--fit-budget-s", type=float, default=300.0)
+    ap.add_argument("--base", default="auto", help="detector checkpoint to fine-tune from (auto, none, or .pt)")
     args = ap.parse_args(argv)
     configure_logging(1)
     current = Path(args.current) if args.current else None
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
         if current is None or not current.is_file():
             raise SystemExit(f"{args.flight}: no labels and no current detector to self-label with")
         self_label(args.flight, current)
-    opts = ReplayOptions(fit_budget_s=args.fit_budget_s, sfm=not args.quick)
+    opts = ReplayOptions(fit_budget_s=args.fit_budget_s, sfm=not args.quick, base_weights=resolve_base(args.base))
     if args.quick:
         opts.epochs, opts.imgsz, opts.fit_budget_s = 5, 320, min(args.fit_budget_s, 60.0)
     replay(args.flight, opts)

@@ -42,6 +42,9 @@ class ReplayOptions:
     batch: int = 16
     imgsz: int = 640
     train_budget_s: float | None = None
+    #: checkpoint (.pt) the detectors are fine-tuned from, as the paper fine-tunes a pretrained YOLOv8n
+    #: (see :mod:`export.pretrain`); None: from scratch
+    base_weights: str | None = None
     #: simulator truth file: adds altitude test sets rendered by the simulator
     truth: str | None = None
     test_altitudes_m: tuple[float, ...] = (15.0, 35.0, 40.0, 45.0, 50.0)
@@ -95,12 +98,13 @@ def stage_train(flight: Path, opts: ReplayOptions, name: str) -> dict:
         raise FileNotFoundError(f"{data}: dataset missing (run the synth stage)")
     out = _derived(flight) / "detector" / name
     cfg = TrainConfig(data=str(data), out=str(out), epochs=opts.epochs, batch=opts.batch, imgsz=opts.imgsz,
-                      seed=opts.seed, threads=opts.threads, max_time_s=opts.train_budget_s)
+                      seed=opts.seed, threads=opts.threads, max_time_s=opts.train_budget_s,
+                      weights=opts.base_weights)
     metrics = train(cfg)
     best = out / "best.pt"
     model, meta = load_checkpoint(best)
     export_onnx(model, out / "model.onnx", imgsz=opts.imgsz)
-    return {"metrics": metrics, "onnx": str(out / "model.onnx")}
+    return {"metrics": metrics, "onnx": str(out / "model.onnx"), "base": opts.base_weights}
 
 
 def stage_testsets(flight: Path, opts: ReplayOptions) -> dict:
@@ -150,6 +154,11 @@ def replay(flight: str | Path, opts: ReplayOptions) -> dict:
         raise FileNotFoundError(f"{flight}: not a recorded flight (no frames.csv)")
     if opts.truth is not None and not Path(opts.truth).is_file():
         raise FileNotFoundError(f"{opts.truth}: truth file not found")
+    if opts.truth is not None and opts.base_weights:
+        from export.pretrain import check_base_for_world
+        from sim.flight import load_truth
+
+        check_base_for_world(opts.base_weights, load_truth(opts.truth)["world"].get("seed", 0))
     t0 = time.perf_counter()
     runner = StageRunner(flight, seed=opts.seed, force=opts.force)
     runner.run("poses", lambda: stage_poses(flight, opts))
@@ -182,6 +191,9 @@ def register(subparsers) -> None:
     p.add_argument("--imgsz", type=int, default=640)
     p.add_argument("--train-budget-s", type=float, default=None)
     p.add_argument("--truth", default=None, help="simulator truth file: adds altitude test sets")
+    p.add_argument("--base", default="auto", help="detector checkpoint to fine-tune from: auto (the cached base "
+                                                  "of `uavsim detector pretrain`, if any), none (from scratch), "
+                                                  "or a .pt path")
     p.add_argument("--threads", type=int, default=None)
     p.set_defaults(func=run_cli)
 
@@ -196,11 +208,25 @@ def parse_altitudes(text: str) -> tuple[float, ...]:
     return values
 
 
+def resolve_base(choice: str | None) -> str | None:
+    """``auto`` → the cached base detector if there is one; ``none``/empty → None; else the given checkpoint."""
+    from export.pretrain import find_base
+
+    if not choice or choice.lower() == "none":
+        return None
+    base = find_base(None if choice.lower() == "auto" else choice)
+    if base is None:
+        log.warning("no base detector cached: detectors train from scratch, which needs far more than one "
+                    "flight's frames (make one with `uavsim detector pretrain`)")
+    return str(base) if base else None
+
+
 def run_cli(args) -> int:
     opts = ReplayOptions(seed=args.seed, force=args.force, sfm=not args.no_sfm, fit_budget_s=args.fit_budget_s,
                          synth_count=args.synth_count, synth_altitudes_m=parse_altitudes(args.altitudes),
                          epochs=args.epochs, batch=args.batch, imgsz=args.imgsz,
-                         train_budget_s=args.train_budget_s, truth=args.truth, threads=args.threads)
+                         train_budget_s=args.train_budget_s, truth=args.truth, threads=args.threads,
+                         base_weights=resolve_base(args.base))
     out = replay(args.flight, opts)
     print(f"replay finished: {out['report']}")
     return 0

@@ -102,7 +102,20 @@ def write_report(flight: Path, summaries: dict, stage_seconds: dict, total_s: fl
               f"- {s.get('images_per_minute')} images per minute",
               "", "![contact sheet](synth/contact_sheet.png)"]
     table = summaries.get("eval", {}).get("table", {})
-    lines += ["", "## Detectors: Real / Synthetic / R+S", ""] + detector_table(table)
+    lines += ["", "## Detectors: Real / Synthetic / R+S", ""]
+    base = next((summaries[k].get("base") for k in summaries if k.startswith("train-")), None)
+    if base:
+        from export.pretrain import base_info
+
+        info = base_info(base)
+        lines += [f"Each detector is fine-tuned from the base detector `{base}` (YOLOv8n trained from scratch on "
+                  f"simulator renders of other worlds at 15 m; its own val mAP50 "
+                  f"{_fmt(info.get('val_map50'))}), as the paper fine-tunes a pretrained YOLOv8n.", ""]
+    elif any(k.startswith("train-") for k in summaries):
+        lines += ["**Trained from scratch on this flight only (no base detector)**: a few dozen images cannot "
+                  "train YOLOv8n, so these numbers say nothing about synthetic data; run "
+                  "`uavsim detector pretrain` once and replay again.", ""]
+    lines += detector_table(table)
     plot = plot_map_vs_altitude(table, derived / "map_vs_altitude.png") if table else None
     if plot:
         lines += ["", "![mAP50 against altitude](map_vs_altitude.png)"]

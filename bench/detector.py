@@ -3,7 +3,8 @@
 Stages (each cached under bench/out/detector/; rerun skips what exists):
   data     render a YOLO dataset: 15 m orbits around several world seeds, 320x240 px
            (train seeds and held-out val seeds are disjoint worlds)
-  train    train YOLOv8n from scratch (CPU), record the mAP curve, export ONNX
+  train    train YOLOv8n from scratch (CPU) — the same code as `uavsim detector pretrain --out bench/out/detector`;
+           record the mAP curve, export ONNX, evaluate it through the flight path
   latency  per-frame latency of the in-flight path (letterbox + session.run + decode/NMS) against
            the bare ``session.run`` on the same input, 320 and 640 px, 1 and 2 threads; mAP beside it
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 import time
@@ -25,89 +27,40 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
 
 WORK = OUT_DIR / "detector"
-ALTITUDE_M = 15.0
-SIZE = (320, 240)
-TRAIN_SEEDS = (10, 11, 12, 13, 14, 15)
-VAL_SEEDS = (20, 21)
 
 
-def render_split(root: Path, seeds, n_images: int, rng_seed: int) -> None:
-    """Render ``n_images`` views spread over ``seeds`` worlds into root/images, root/labels."""
-    import cv2
+def pretrain_config(args):
+    from export.pretrain import PretrainConfig
 
-    from sim.world import make_world
-    from telemetry.camera import Camera, Mount
-    from telemetry.frames import orbit_pose
-
-    (root / "images").mkdir(parents=True, exist_ok=True)
-    (root / "labels").mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(rng_seed)
-    per_world = int(np.ceil(n_images / len(seeds)))
-    k = 0
-    for seed in seeds:
-        world = None
-        for _ in range(per_world):
-            if k >= n_images:
-                break
-            name = f"s{seed}_{k:05d}"
-            k += 1
-            # draw the view parameters even when cached so the sequence is reproducible
-            radius = rng.uniform(6.0, 22.0)
-            pitch = -np.degrees(np.arctan2(ALTITUDE_M, radius)) + rng.uniform(-10, 10)
-            pitch = float(np.clip(pitch, -90.0, -20.0))
-            azimuth = rng.uniform(0, 360)
-            centre = (rng.uniform(-6, 6), rng.uniform(-6, 6), 0.0)
-            if (root / "labels" / f"{name}.txt").exists():
-                continue
-            if world is None:
-                world = make_world(seed=seed)
-            camera = Camera.from_fov(*SIZE, 70.0, Mount(pitch_deg=pitch))
-            T = orbit_pose(ALTITUDE_M, radius, pitch, azimuth, centre)
-            res = world.render(camera, T, supersample=2)
-            cv2.imwrite(str(root / "images" / f"{name}.png"), cv2.cvtColor(res.rgb, cv2.COLOR_RGB2BGR))
-            (root / "labels" / f"{name}.txt").write_text(res.yolo_labels())
-        print(f"  {root.name}: world {seed} done ({k}/{n_images})", flush=True)
+    lo, hi = (int(v) for v in args.train_seeds.split("-"))
+    extra = {"weights": args.weights} if args.weights else {}
+    return PretrainConfig(out=str(WORK), train_seeds=tuple(range(lo, hi + 1)), train_images=args.train_images,
+                          val_images=args.val_images, epochs=args.epochs, batch=args.batch, nbs=args.nbs,
+                          budget_s=args.budget_s, extra=extra)
 
 
-def stage_data(n_train: int, n_val: int, train_seeds=TRAIN_SEEDS) -> Path:
-    from sim.people import CLASS_NAMES
-
-    data = WORK / "data"
-    t0 = time.perf_counter()
-    render_split(data / "train", train_seeds, n_train, 1)
-    render_split(data / "val", VAL_SEEDS, n_val, 2)
-    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(CLASS_NAMES))
-    yaml = data / "data.yaml"
-    yaml.write_text(f"path: {data}\ntrain: train/images\nval: val/images\nnames:\n{names}\n")
-    print(f"data: {yaml} ({time.perf_counter() - t0:.0f} s)")
-    return yaml
-
-
-def stage_train(yaml: Path, epochs: int, batch: int, nbs: int, budget_s: float | None, run_name: str = "run",
-                weights: str | None = None) -> dict:
-    """Train YOLOv8n from scratch at 320 px, export ONNX, evaluate the ONNX through the flight path."""
-    import logging
-
+def stage_train(args) -> dict:
+    """Train YOLOv8n from scratch at 320 px (= ``uavsim detector pretrain``), then evaluate its ONNX export
+    through the flight path."""
     from export.evaluate import evaluate_model
     from export.onnx_export import export_onnx
-    from export.train import TrainConfig, load_checkpoint, train
+    from export.pretrain import pretrain_base
+    from export.train import load_checkpoint
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    run = WORK / run_name
-    cfg = TrainConfig(data=str(yaml), out=str(run), scale="n", epochs=epochs, batch=batch, imgsz=320, nbs=nbs,
-                      close_mosaic=max(2, epochs // 5), max_time_s=budget_s, weights=weights)
-    summary = train(cfg)
-    model, _ = load_checkpoint(summary["best"])
+    info = pretrain_base(pretrain_config(args))
+    model, _ = load_checkpoint(WORK / "base.pt")
     onnx_path = export_onnx(model, WORK / "yolov8n_sim15.onnx", 320)
+    yaml = WORK / "data" / "data.yaml"
     res = evaluate_model(onnx_path, yaml, imgsz=320)
     print(res.table())
-    summary.update(onnx=str(onnx_path), onnx_eval=res.to_dict(), config={k: v for k, v in vars(cfg).items()
-                                                                          if k != "augment"})
-    (WORK / f"{run_name}_summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
+    history = json.loads((WORK / "run" / "history.json").read_text()) if (WORK / "run" / "history.json").is_file() \
+        else []
+    summary = {**info, "onnx": str(onnx_path), "onnx_eval": res.to_dict(), "history": history}
+    (WORK / "train_summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
     return summary
 
 
-def stage_latency(yaml: Path, repeats: int, run_name: str = "run") -> dict:
+def stage_latency(yaml: Path, repeats: int) -> dict:
     """Flight-path latency against bare session.run, and mAP, per input size and thread count."""
     from export.dataset import load_data_config, load_rgb
     from export.evaluate import evaluate_model
@@ -115,7 +68,7 @@ def stage_latency(yaml: Path, repeats: int, run_name: str = "run") -> dict:
     from export.onnx_export import export_onnx
     from export.train import load_checkpoint
 
-    model, _ = load_checkpoint(WORK / run_name / "best.pt")
+    model, _ = load_checkpoint(WORK / "base.pt")
     images = [load_rgb(p) for p in load_data_config(yaml).val[:8]]
     rows = []
     for imgsz in (320, 640):
@@ -186,29 +139,29 @@ def plot(history: list[dict], rows: list[dict]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stage", default="all", choices=["all", "data", "train", "latency"])
-    ap.add_argument("--train-images", type=int, default=360)
+    ap.add_argument("--train-images", type=int, default=600)
     ap.add_argument("--val-images", type=int, default=80)
-    ap.add_argument("--train-seeds", default="10-15", help="world seeds of the training split, e.g. 10-19")
-    ap.add_argument("--epochs", type=int, default=30)
-    ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--nbs", type=int, default=16, help="nominal batch (gradient accumulation); 16 = none")
+    ap.add_argument("--train-seeds", default="10-19", help="world seeds of the training split (val: 20-21)")
+    ap.add_argument("--epochs", type=int, default=60)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--nbs", type=int, default=8, help="nominal batch (gradient accumulation); = batch: none")
     ap.add_argument("--budget-s", type=float, default=None, help="stop training after this many seconds")
     ap.add_argument("--repeats", type=int, default=40, help="latency samples per configuration")
-    ap.add_argument("--run", default="run", help="run folder name under bench/out/detector/")
     ap.add_argument("--weights", default=None, help="continue from this checkpoint instead of scratch")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    yaml = WORK / "data" / "data.yaml"
     if args.stage in ("all", "data"):
-        lo, hi = (int(v) for v in args.train_seeds.split("-"))
-        yaml = stage_data(args.train_images, args.val_images, tuple(range(lo, hi + 1)))
-    else:
-        yaml = WORK / "data" / "data.yaml"
+        from export.pretrain import render_data
+
+        yaml = render_data(pretrain_config(args))
     if args.stage in ("all", "train"):
-        stage_train(yaml, args.epochs, args.batch, args.nbs, args.budget_s, args.run, args.weights)
+        stage_train(args)
     if args.stage in ("all", "latency"):
-        lat = stage_latency(yaml, args.repeats, args.run)
-        summary_path = WORK / f"{args.run}_summary.json"
+        lat = stage_latency(yaml, args.repeats)
+        summary_path = WORK / "train_summary.json"
         train_summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
         path = write_json("detector", {"train": train_summary, "latency": lat["rows"]}, args.json)
         plot(train_summary.get("history", []), lat["rows"])
