@@ -71,7 +71,7 @@ class DetectorConfig:
 
 @dataclass(frozen=True)
 class ProcessingConfig:
-    #: "on_disarm" (after landing), "manual" (on request over the API), or "never"
+    #: "on_disarm" (after landing), "manual" (only on request: POST /api/flights/{id}/process), or "never"
     policy: str = "on_disarm"
     #: CPU niceness of the processing process (capture always wins)
     nice: int = 19

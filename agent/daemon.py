@@ -143,6 +143,7 @@ class Agent:
         self._flight_frames = 0
         self._blocked = False  # quota reached: do not retry until the next disarm
         self._lock = threading.Lock()
+        self._requests: queue.Queue = queue.Queue()  # flights asked for over the API, processed when idle
 
     # ---- status ----------------------------------------------------------------------------
     def status(self) -> dict:
@@ -158,6 +159,7 @@ class Agent:
                     "latency_ms_median": (sorted(det.latency_ms)[len(det.latency_ms) // 2]
                                           if det.latency_ms else None)},
                 "processing": None if self.processing is None else str(self.processing_flight),
+                "processing_queue": [f.name for f in list(self._requests.queue)],
                 "counters": dict(self.counters), "last_error": self.last_error,
                 "heavy_modules": [m for m in HEAVY_MODULES if m in sys.modules],
             }
@@ -213,7 +215,8 @@ class Agent:
             from agent.logserver import LogServer, load_token
 
             host, _, port = cfg.http.bind.rpartition(":")
-            self.server = LogServer(root, load_token(cfg.http.token_file), status=self.status)
+            self.server = LogServer(root, load_token(cfg.http.token_file), status=self.status,
+                                    request_processing=self.request_processing)
             self.http_port = self.server.start_in_thread(host, int(port))
         self._camera_thread = threading.Thread(target=self._camera_loop, name="camera", daemon=True)
         self._camera_thread.start()
@@ -321,8 +324,33 @@ class Agent:
         return flight
 
     # ---- processing ------------------------------------------------------------------------
-    def _start_processing(self, flight: Path) -> None:
-        if self.config.processing.policy != "on_disarm":
+    def request_processing(self, flight: Path) -> tuple[int, dict]:
+        """Queue ``flight`` for processing (called from the HTTP thread); (HTTP status, JSON body).
+
+        Accepted under the "on_disarm" and "manual" policies; the flight runs once the vehicle is disarmed
+        and no other processing runs. A flight still being recorded, or one without frames, is refused.
+        """
+        if self.config.processing.policy == "never":
+            return 409, {"error": "processing is disabled (processing.policy = never)"}
+        if self.flight_dir is not None and flight.resolve() == self.flight_dir.resolve():
+            return 409, {"error": f"{flight.name} is being recorded"}
+        if not (flight / "frames.csv").is_file():
+            return 409, {"error": f"{flight.name} is not a recorded flight (no frames.csv)"}
+        queued = [f.name for f in list(self._requests.queue)]
+        if flight.name in queued:
+            return 200, {"queued": flight.name, "position": queued.index(flight.name)}
+        self._requests.put(flight)
+        log.info("processing of %s requested", flight.name)
+        return 202, {"queued": flight.name, "position": self._requests.qsize() - 1}
+
+    def _start_requested(self) -> None:
+        """Start the next requested flight when nothing else needs the vehicle's CPU."""
+        if self.armed or self.writer is not None or self.processing is not None or self._requests.empty():
+            return
+        self._start_processing(self._requests.get_nowait(), requested=True)
+
+    def _start_processing(self, flight: Path, requested: bool = False) -> None:
+        if not requested and self.config.processing.policy != "on_disarm":
             self._set_state("idle")
             return
         cmd = [sys.executable, "-m", "agent.processing", str(flight), "--current", self.config.detector.model,
@@ -400,6 +428,7 @@ class Agent:
                 if self.writer is not None and not self.writer.writer.ok:
                     self.last_error = f"flight log stopped: {self.writer.status}"
                 self._check_processing()
+                self._start_requested()
                 if wd is not None and time.monotonic() >= next_wd:
                     self.notifier.watchdog()
                     next_wd = time.monotonic() + wd

@@ -142,10 +142,14 @@ class LogServer:
     """The aiohttp application over ``storage_root``; run with :meth:`start_in_thread` or aiohttp."""
 
     def __init__(self, storage_root: str | Path, token: str,
-                 status: Callable[[], dict] | None = None):
+                 status: Callable[[], dict] | None = None,
+                 request_processing: Callable[[Path], tuple[int, dict]] | None = None):
+        """``request_processing(flight_dir)`` → (HTTP status, JSON body) queues a flight for processing;
+        without it the API has no POST route at all."""
         self.root = Path(storage_root)
         self.token = token
         self.status = status or (lambda: {"state": "unknown"})
+        self.request_processing = request_processing
         self.app = web.Application(middlewares=[self._auth])
         self.app.add_routes([
             web.get("/api/health", self.health),
@@ -155,6 +159,9 @@ class LogServer:
             web.get("/api/flights/{flight}/archive", self.archive),
             web.get("/api/flights/{flight}/files/{path:.+}", self.file),
         ])
+        if request_processing is not None:
+            # the one non-GET route: it queues work and never touches the flight's files
+            self.app.add_routes([web.post("/api/flights/{flight}/process", self.process)])
         self._runner: web.AppRunner | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -198,6 +205,11 @@ class LogServer:
             return summary
 
         return web.json_response(await loop.run_in_executor(None, collect))
+
+    async def process(self, request):
+        flight = _flight_dir(self.root, request.match_info["flight"])
+        status, body = self.request_processing(flight)
+        return web.json_response(body, status=status)
 
     async def file(self, request):
         flight = _flight_dir(self.root, request.match_info["flight"])

@@ -129,3 +129,34 @@ def test_token_file_must_be_private(tmp_path):
         load_token(p)
     with pytest.raises(TokenFileError, match="not found"):
         load_token(tmp_path / "missing")
+
+
+def _post(url, token=TOKEN):
+    req = urllib.request.Request(url, data=b"", method="POST",
+                                 headers={"Authorization": f"Bearer {token}"} if token else {})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as resp:
+            return resp.status, json.loads(resp.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, None
+
+
+def test_processing_requests_reach_the_agent_only_with_the_token_and_a_real_flight(tmp_path):
+    root = tmp_path / "flights"
+    (root / "flight_0001").mkdir(parents=True)
+    asked = []
+    srv = LogServer(root, TOKEN, request_processing=lambda d: (asked.append(d.name), (202, {"queued": d.name}))[1])
+    base = f"http://127.0.0.1:{srv.start_in_thread()}"
+    try:
+        assert _post(base + "/api/flights/flight_0001/process", token=None)[0] == 401
+        assert _post(base + "/api/flights/..%2F..%2Fetc/process")[0] == 404
+        assert _post(base + "/api/flights/flight_9999/process")[0] == 404
+        assert _post(base + "/api/flights/flight_0001/process") == (202, {"queued": "flight_0001"})
+        assert asked == ["flight_0001"]
+    finally:
+        srv.stop()
+
+
+def test_without_a_processing_callback_the_api_has_no_post_route(server):
+    base, _ = server
+    assert _post(base + "/api/flights/flight_0001/process")[0] in (404, 405)
