@@ -303,7 +303,7 @@ def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], mi
         gt = data.images[i].numpy()
         row = {"frame": data.names[i], "psnr": psnr(r["rgb"], gt), "ssim": ssim(r["rgb"], gt)}
         if bool(data.has_mask[i]):
-            truth = [MaskBox(c, x0, y0, x1, y1, 0) for c, x0, y0, x1, y1 in data.boxes[i]
+            truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]
                      if min(x1 - x0, y1 - y0) >= min_box_px]
             found = match_boxes(truth, boxes_from_mask(r["mask"]))
             ious += found
