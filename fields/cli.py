@@ -22,7 +22,8 @@ KINDS = ("auto", "static", "kplanes", "kplanes-ext")
 def register(subparsers) -> None:
     p = subparsers.add_parser("fit", help="fit a radiance field (with mask head) to a recorded flight")
     p.add_argument("flight", type=Path, help="recorded flight folder (needs derived/poses.json)")
-    p.add_argument("--kind", choices=KINDS, default="auto", help="field kind; auto = static for now")
+    p.add_argument("--kind", choices=KINDS, default="auto",
+                   help="field kind; auto = static unless labelled people move (then kplanes-ext)")
     p.add_argument("--budget-s", type=float, default=300.0, help="wall-clock training budget, s (0: none)")
     p.add_argument("--iters", type=int, default=20000, help="maximum iterations")
     p.add_argument("--encoding", choices=("hash", "planes"), default=None, help="spatial encoding")
@@ -30,7 +31,8 @@ def register(subparsers) -> None:
     p.add_argument("--samples", type=int, default=None, help="samples per ray")
     p.add_argument("--batch-rays", type=int, default=None, help="rays per iteration")
     p.add_argument("--budget-mb", type=float, default=None, help="model size budget, MB")
-    p.add_argument("--holdout-every", type=int, default=8, help="hold out every k-th frame (0: none)")
+    p.add_argument("--holdout-every", type=int, default=None,
+                   help="hold out every k-th frame (0: none; default 8 static, 2 dynamic)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from derived/fields/static.pt")
@@ -57,11 +59,18 @@ def _torch_env(threads: int | None) -> None:
 
 
 def run_fit(args) -> int:
-    if args.kind in ("kplanes", "kplanes-ext"):
-        raise ValueError(f"--kind {args.kind}: dynamic fields are not implemented yet; use --kind static")
     if args.budget_s < 0 or args.iters <= 0:
         raise ValueError("--budget-s must be >= 0 and --iters > 0")
     _torch_env(args.threads)
+    out = args.out or args.flight / "derived" / "fields"
+    if args.kind != "static":
+        from fields import dynamic_cli
+
+        code = dynamic_cli.run(args, out)  # None: auto chose a static field
+        if code is not None:
+            return code
+    if args.holdout_every is None:
+        args.holdout_every = 8
     from fields.data import load_flight
     from fields.training import FitConfig, evaluate_frames, fit, write_fit_json
 
@@ -72,7 +81,6 @@ def run_fit(args) -> int:
                       ("batch_rays", args.batch_rays), ("budget_mb", args.budget_mb)):
         if val is not None:
             setattr(cfg, attr, val)
-    out = args.out or args.flight / "derived" / "fields"
     out.mkdir(parents=True, exist_ok=True)
     result = fit(data, cfg, out_dir=out, flight=args.flight, resume=args.resume)
     _, test = data.split(cfg.holdout_every)
