@@ -45,7 +45,8 @@ def register(subparsers) -> None:
     r.add_argument("--out", type=Path, required=True, help="output folder")
     r.add_argument("--masks", action="store_true", help="also write mask PNGs and YOLO labels")
     r.add_argument("--min-box-px", type=int, default=4, help="smallest mask blob kept as a label, pixels")
-    r.add_argument("--checkpoint", type=Path, default=None, help="default FLIGHT/derived/fields/static.pt")
+    r.add_argument("--checkpoint", type=Path, default=None,
+                   help="default FLIGHT/derived/fields/static.pt, else dynamic.pt (renders at each pose's t_unix_us)")
     r.add_argument("--threads", type=int, default=None)
     r.set_defaults(func=run_render)
 
@@ -101,12 +102,12 @@ def run_render(args) -> int:
     import cv2
     import numpy as np
 
+    from fields.dynamic_cli import load_renderer
     from fields.evaluation import boxes_from_mask
-    from fields.training import load_checkpoint
     from telemetry.posesfile import PosesFile
 
     poses = PosesFile.load(args.poses)
-    model, _ = load_checkpoint(args.checkpoint or args.flight / "derived" / "fields" / "static.pt")
+    render = load_renderer(args.checkpoint, args.flight)
     camera = poses.camera
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -118,7 +119,7 @@ def run_render(args) -> int:
             log.warning("pose %d has no cam_from_world (%s): skipped", i, entry.reason)
             continue
         name = Path(entry.frame).stem if entry.frame else f"pose_{i:05d}"
-        r = model.render_image(camera, entry.cam_from_world, with_mask=args.masks)
+        r = render(camera, entry, args.masks)
         rgb = (np.clip(r["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
         cv2.imwrite(str(out / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if args.masks:

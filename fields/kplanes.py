@@ -296,7 +296,9 @@ class KPlanesField(nn.Module):
         nn.init.zeros_(self.appearance.weight)
         self.color_mlp = nn.Sequential(nn.Linear(config.geo_features + config.appearance_dim, h), nn.ReLU(),
                                        nn.Linear(h, h), nn.ReLU(), nn.Linear(h, 3))
-        self.mask_head = nn.Linear(config.geo_features, config.n_classes + 1)
+        # the mask head reads the geometry features but cannot change them (detached input): a mask
+        # loss reaching the shared features carved the density in the static field (bench/RESULTS.md)
+        self.mask_head = nn.Sequential(nn.Linear(config.geo_features, h), nn.ReLU(), nn.Linear(h, config.n_classes + 1))
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         return (points - self.lo) / (self.hi - self.lo)
@@ -318,7 +320,7 @@ class KPlanesField(nn.Module):
         rgb = torch.sigmoid(self.color_mlp(torch.cat([geo, app], dim=-1)).float())
         out = {"sigma": sigma, "rgb": rgb}
         if with_mask:
-            out["mask_logits"] = self.mask_head(geo).float()
+            out["mask_logits"] = self.mask_head(geo.detach()).float()
         if self.config.planes.extended:
             out["dynamic_prob"] = torch.sigmoid(enc["mask_values"].mean(dim=-1))
             out["static_space"] = enc["static_space"]

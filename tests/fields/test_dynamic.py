@@ -102,6 +102,19 @@ def test_cli_fit_auto_writes_the_choice_and_fits_extended(dynamic_flight, tmp_pa
     assert len(fit["heldout"]["frames"]) == SPEC.frames // 2
     model, _ = load_dynamic_checkpoint(out / "dynamic.pt", "cpu")
     assert model.kind == "kplanes-ext"
+    # render the fitted dynamic field at the paper's dynamic novel poses (t, t +- dt)
+    from fields.novel_poses import dynamic_novel_poses
+
+    pf = PosesFile.load(flight / "derived" / "poses.json")
+    pf.frames = dynamic_novel_poses(pf.frames, 2, 2.0)
+    pf.camera = pf.camera.scaled(0.5)
+    pf.save(tmp_path / "novel.json")
+    r = subprocess.run([sys.executable, "-m", "agent.cli", "render", str(flight),
+                        "--poses", str(tmp_path / "novel.json"), "--out", str(tmp_path / "renders"),
+                        "--checkpoint", str(out / "dynamic.pt"), "--masks"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert len(list((tmp_path / "renders").glob("pose_*_mask.png"))) == 6
 
 
 # ---- data -------------------------------------------------------------------------------------
