@@ -71,6 +71,8 @@ class DynamicFitConfig:
     lambda_time_l1: float = 1e-4
     lambda_dynamic: float = 0.05
     lambda_cos: float = 1e-2
+    #: ``L_cos`` is estimated on this many random samples of the batch's points
+    cos_points: int = 4096
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
     checkpoint_every_s: float = 60.0
@@ -226,7 +228,10 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             p = res["dynamic_prob"][m_ok].clamp(1e-5, 1 - 1e-5)
             loss = loss + cfg.lambda_dynamic * F.binary_cross_entropy(p, dyn[m_ok])
         if ext and cfg.lambda_cos > 0:
-            loss = loss + cfg.lambda_cos * cosine_separation(res["static_space"], res["dynamic_space"])
+            n_pts = res["static_space"][0].shape[0]
+            sub = torch.randint(n_pts, (min(cfg.cos_points, n_pts),), device=dev, generator=gen)
+            loss = loss + cfg.lambda_cos * cosine_separation([f[sub] for f in res["static_space"]],
+                                                             [f[sub] for f in res["dynamic_space"]])
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()
