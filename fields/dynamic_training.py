@@ -70,7 +70,8 @@ class DynamicFitConfig:
     lambda_time_smooth: float = 1e-3
     lambda_time_l1: float = 1e-4
     lambda_dynamic: float = 0.05
-    lambda_cos: float = 1e-2
+    #: weight of L_cos (1e-2 slowed learning: 18.1 vs 19.7 dB train PSNR after 150 steps, 256 rays)
+    lambda_cos: float = 1e-4
     #: ``L_cos`` is estimated on this many random samples of the batch's points
     cos_points: int = 4096
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
