@@ -22,7 +22,8 @@ KINDS = ("auto", "static", "kplanes", "kplanes-ext")
 def register(subparsers) -> None:
     p = subparsers.add_parser("fit", help="fit a radiance field (with mask head) to a recorded flight")
     p.add_argument("flight", type=Path, help="recorded flight folder (needs derived/poses.json)")
-    p.add_argument("--kind", choices=KINDS, default="auto", help="field kind; auto = static for now")
+    p.add_argument("--kind", choices=KINDS, default="auto",
+                   help="field kind; auto = static unless labelled people move (then kplanes-ext)")
     p.add_argument("--budget-s", type=float, default=300.0, help="wall-clock training budget, s (0: none)")
     p.add_argument("--iters", type=int, default=20000, help="maximum iterations")
     p.add_argument("--encoding", choices=("hash", "planes"), default=None, help="spatial encoding")
@@ -30,7 +31,8 @@ def register(subparsers) -> None:
     p.add_argument("--samples", type=int, default=None, help="samples per ray")
     p.add_argument("--batch-rays", type=int, default=None, help="rays per iteration")
     p.add_argument("--budget-mb", type=float, default=None, help="model size budget, MB")
-    p.add_argument("--holdout-every", type=int, default=8, help="hold out every k-th frame (0: none)")
+    p.add_argument("--holdout-every", type=int, default=None,
+                   help="hold out every k-th frame (0: none; default 8 static, 2 dynamic)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from derived/fields/static.pt")
@@ -43,7 +45,8 @@ def register(subparsers) -> None:
     r.add_argument("--out", type=Path, required=True, help="output folder")
     r.add_argument("--masks", action="store_true", help="also write mask PNGs and YOLO labels")
     r.add_argument("--min-box-px", type=int, default=4, help="smallest mask blob kept as a label, pixels")
-    r.add_argument("--checkpoint", type=Path, default=None, help="default FLIGHT/derived/fields/static.pt")
+    r.add_argument("--checkpoint", type=Path, default=None,
+                   help="default FLIGHT/derived/fields/static.pt, else dynamic.pt (renders at each pose's t_unix_us)")
     r.add_argument("--threads", type=int, default=None)
     r.set_defaults(func=run_render)
 
@@ -57,11 +60,18 @@ def _torch_env(threads: int | None) -> None:
 
 
 def run_fit(args) -> int:
-    if args.kind in ("kplanes", "kplanes-ext"):
-        raise ValueError(f"--kind {args.kind}: dynamic fields are not implemented yet; use --kind static")
     if args.budget_s < 0 or args.iters <= 0:
         raise ValueError("--budget-s must be >= 0 and --iters > 0")
     _torch_env(args.threads)
+    out = args.out or args.flight / "derived" / "fields"
+    if args.kind != "static":
+        from fields import dynamic_cli
+
+        code = dynamic_cli.run(args, out)  # None: auto chose a static field
+        if code is not None:
+            return code
+    if args.holdout_every is None:
+        args.holdout_every = 8
     from fields.data import load_flight
     from fields.training import FitConfig, evaluate_frames, fit, write_fit_json
 
@@ -72,7 +82,6 @@ def run_fit(args) -> int:
                       ("batch_rays", args.batch_rays), ("budget_mb", args.budget_mb)):
         if val is not None:
             setattr(cfg, attr, val)
-    out = args.out or args.flight / "derived" / "fields"
     out.mkdir(parents=True, exist_ok=True)
     result = fit(data, cfg, out_dir=out, flight=args.flight, resume=args.resume)
     _, test = data.split(cfg.holdout_every)
@@ -93,12 +102,12 @@ def run_render(args) -> int:
     import cv2
     import numpy as np
 
+    from fields.dynamic_cli import load_renderer
     from fields.evaluation import boxes_from_mask
-    from fields.training import load_checkpoint
     from telemetry.posesfile import PosesFile
 
     poses = PosesFile.load(args.poses)
-    model, _ = load_checkpoint(args.checkpoint or args.flight / "derived" / "fields" / "static.pt")
+    render = load_renderer(args.checkpoint, args.flight)
     camera = poses.camera
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -110,7 +119,7 @@ def run_render(args) -> int:
             log.warning("pose %d has no cam_from_world (%s): skipped", i, entry.reason)
             continue
         name = Path(entry.frame).stem if entry.frame else f"pose_{i:05d}"
-        r = model.render_image(camera, entry.cam_from_world, with_mask=args.masks)
+        r = render(camera, entry, args.masks)
         rgb = (np.clip(r["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
         cv2.imwrite(str(out / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if args.masks:

@@ -64,15 +64,28 @@ def cosine_separation(f_static: list[torch.Tensor], f_dynamic: list[torch.Tensor
         raise ValueError("static and dynamic feature lists must pair up plane by plane")
     total = torch.zeros((), dtype=torch.float32, device=f_static[0].device if f_static else None)
     for a, b in zip(f_static, f_dynamic, strict=True):
-        cos = F.cosine_similarity(a.float(), b.float(), dim=-1, eps=eps)
-        total = total + cos.abs().mean()
+        # work on (D, N): the encoding's features are transposed views of contiguous (D, N)
+        # tensors, and norms over a strided last dim were 15 % of a training step
+        a, b = a.float().t(), b.float().t()
+        dot = (a * b).sum(0)
+        na = a.pow(2).sum(0).sqrt().clamp_min(eps)
+        nb = b.pow(2).sum(0).sqrt().clamp_min(eps)
+        total = total + (dot / (na * nb)).abs().mean()
     return total
+
+
+def sample_plane_cn(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Bilinear features (C, N), contiguous, of ``plane`` (1, C, Rv, Ru) at ``u, v`` in [0, 1].
+
+    Channel-first is what ``grid_sample`` produces; products of such tensors stay contiguous (the
+    (N, C) transpose made every Hadamard product a strided copy, ~2x slower on CPU)."""
+    grid = torch.stack([u * 2 - 1, v * 2 - 1], dim=-1).view(1, -1, 1, 2).to(plane.dtype)
+    return F.grid_sample(plane, grid, mode="bilinear", align_corners=True).view(plane.shape[1], -1)
 
 
 def sample_plane(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Bilinear features (N, C) of ``plane`` (1, C, Rv, Ru) at coordinates ``u, v`` in [0, 1]."""
-    grid = torch.stack([u * 2 - 1, v * 2 - 1], dim=-1).view(1, -1, 1, 2).to(plane.dtype)
-    return F.grid_sample(plane, grid, mode="bilinear", align_corners=True).view(plane.shape[1], -1).t()
+    return sample_plane_cn(plane, u, v).t()
 
 
 def sample_plane_reference(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -175,33 +188,40 @@ class KPlanesEncoding(nn.Module):
         t = t01.float().reshape(-1).clamp(0.0, 1.0)
         coords = torch.cat([x, t[:, None]], dim=-1)
         d = self.config.features
+        # features are (C, N) inside: contiguous products; one transpose at the end
         feats, masks, stat_space, dyn_space = [], [], [], []
         for s in range(self.n_scales):
             dyn = None
             for k, (a, b) in enumerate(SPACE_PLANES + TIME_PLANES):
-                f = sample_plane(self.dynamic_planes[6 * s + k], coords[:, a], coords[:, b])
+                f = sample_plane_cn(self.dynamic_planes[6 * s + k], coords[:, a], coords[:, b])
                 if k >= 3 and self.config.extended:
-                    masks.append(f[:, d:])
-                    f = f[:, :d]
+                    masks.append(f[d:])
+                    f = f[:d]
                 if k < 3 and self.config.extended:
-                    dyn_space.append(f)
+                    dyn_space.append(f.t())
                 dyn = f if dyn is None else dyn * f
             if self.config.extended:
                 stat = None
                 for k, (a, b) in enumerate(SPACE_PLANES):
-                    f = sample_plane(self.static_planes[3 * s + k], coords[:, a], coords[:, b])
-                    stat_space.append(f)
+                    f = sample_plane_cn(self.static_planes[3 * s + k], coords[:, a], coords[:, b])
+                    stat_space.append(f.t())
                     stat = f if stat is None else stat * f
                 if dynamic_gate is not None:
-                    g = dynamic_gate.reshape(-1, 1).to(stat.dtype)
+                    g = dynamic_gate.reshape(1, -1).to(stat.dtype)
                     stat = gate_grad(stat, 1.0 - g)
                     dyn = gate_grad(dyn, g)
                 feats += [stat, dyn]
             else:
                 feats.append(dyn)
-        out = {"features": torch.cat(feats + masks, dim=-1)}
+        mask_feats = masks
+        if self.config.extended and dynamic_gate is not None:
+            # the mask channel lives on the dynamic time planes: the colour loss of static pixels
+            # must not move it either (its own box supervision reads ``mask_values``, ungated)
+            g = dynamic_gate.reshape(1, -1).to(x.dtype)
+            mask_feats = [gate_grad(m, g) for m in masks]
+        out = {"features": torch.cat(feats + mask_feats, dim=0).t()}
         if self.config.extended:
-            out["mask_values"] = torch.cat(masks, dim=-1)
+            out["mask_values"] = torch.cat(masks, dim=0).t()
             out["static_space"] = stat_space
             out["dynamic_space"] = dyn_space
         return out
@@ -281,7 +301,9 @@ class KPlanesField(nn.Module):
         nn.init.zeros_(self.appearance.weight)
         self.color_mlp = nn.Sequential(nn.Linear(config.geo_features + config.appearance_dim, h), nn.ReLU(),
                                        nn.Linear(h, h), nn.ReLU(), nn.Linear(h, 3))
-        self.mask_head = nn.Linear(config.geo_features, config.n_classes + 1)
+        # the mask head reads the geometry features but cannot change them (detached input): a mask
+        # loss reaching the shared features carved the density in the static field (bench/RESULTS.md)
+        self.mask_head = nn.Sequential(nn.Linear(config.geo_features, h), nn.ReLU(), nn.Linear(h, config.n_classes + 1))
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         return (points - self.lo) / (self.hi - self.lo)
@@ -303,7 +325,7 @@ class KPlanesField(nn.Module):
         rgb = torch.sigmoid(self.color_mlp(torch.cat([geo, app], dim=-1)).float())
         out = {"sigma": sigma, "rgb": rgb}
         if with_mask:
-            out["mask_logits"] = self.mask_head(geo).float()
+            out["mask_logits"] = self.mask_head(geo.detach()).float()
         if self.config.planes.extended:
             out["dynamic_prob"] = torch.sigmoid(enc["mask_values"].mean(dim=-1))
             out["static_space"] = enc["static_space"]

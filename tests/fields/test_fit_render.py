@@ -135,8 +135,8 @@ def test_cli_fit_then_render(tmp_path, tiny_flight, capsys):
 def test_cli_errors(tmp_path, tiny_flight, capsys):
     assert main(["fit", str(tmp_path / "nope"), "--kind", "static"]) == 2
     assert "no such flight" in capsys.readouterr().err
-    assert main(["fit", str(tiny_flight), "--kind", "kplanes"]) == 2
-    assert "not implemented yet" in capsys.readouterr().err
+    assert main(["fit", str(tmp_path / "nope"), "--kind", "kplanes"]) == 2  # dynamic kinds: same clear error
+    assert "no such flight" in capsys.readouterr().err
     assert main(["render", str(tmp_path), "--poses", str(tmp_path / "p.json"), "--out", str(tmp_path / "o")]) == 2
     assert "no such poses file" in capsys.readouterr().err
 

@@ -1,0 +1,278 @@
+"""Dynamic fields: timed flight data, the K-Planes model and trainer, --kind auto, hard cases.
+
+Flights are 64x48 px, 12 frames 0.5 s apart, from 6 m (people ~10 px tall) on a short line, so
+walking people (1-1.6 m/s) move 3-5 m between frames >= 3 s apart.
+"""
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from fields.dynamic_data import load_dynamic_flight, normalise_times, time_resolution
+from fields.dynamic_model import DynamicModel, plane_sizing
+from fields.dynamic_simscene import LineSpec, PoseNoise, noisy_poses, write_line_flight
+from fields.dynamic_training import (
+    DynamicFitConfig,
+    evaluate_dynamic,
+    fit_dynamic,
+    load_dynamic_checkpoint,
+    split,
+)
+from fields.scene_kind import choose_kind
+from sim.world import make_world
+from telemetry.camera import Camera, Mount
+from telemetry.posesfile import PosesFile
+
+SPEC = LineSpec(altitude_m=6.0, length_m=4.0, frames=12, dt_s=0.5)
+TINY = dict(iters=3, budget_s=None, n_samples=8, batch_rays=128, max_resolution=32, features=4, hidden=16)
+
+
+def _flight(tmp_path_factory, dynamic: bool, seed: int = 5):
+    out = tmp_path_factory.mktemp("dyn" if dynamic else "stat") / "flight"
+    world = make_world(seed=seed, dynamic=dynamic, texture_size=512, texel_m=0.05)
+    camera = Camera.from_fov(64, 48, 70.0, Mount(pitch_deg=-60))
+    write_line_flight(out, world, camera, SPEC, PoseNoise(), supersample=1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def dynamic_flight(tmp_path_factory):
+    return _flight(tmp_path_factory, True)
+
+
+@pytest.fixture(scope="module")
+def static_flight(tmp_path_factory):
+    return _flight(tmp_path_factory, False)
+
+
+def _choice(flight):
+    dd = load_dynamic_flight(flight)
+    d = dd.data
+    return choose_kind(d.camera, d.cam_from_world, dd.times_us, d.boxes, d.has_mask.tolist())
+
+
+# ---- --kind auto ------------------------------------------------------------------------------
+def test_auto_picks_dynamic_when_people_walk(dynamic_flight):
+    c = _choice(dynamic_flight)
+    assert c.kind == "dynamic", c
+    assert c.evidence["moved_fraction_long_gap"] > c.evidence["moved_fraction_short_gap"]
+
+
+def test_auto_picks_static_when_people_stand(static_flight):
+    c = _choice(static_flight)
+    assert c.kind == "static", c
+    assert "stay put" in c.reason
+
+
+def test_auto_static_on_an_orbit_around_still_people(tiny_flight):
+    """The shared static fixture (orbit, frames 0.2 s apart: 1.4 s) is too short to show motion."""
+    c = _choice(tiny_flight)
+    assert c.kind == "static" and "too short" in c.reason
+
+
+def test_auto_without_labels_or_with_one_frame_is_static(static_flight):
+    dd = load_dynamic_flight(static_flight)
+    d = dd.data
+    assert choose_kind(d.camera, d.cam_from_world, dd.times_us, None).kind == "static"
+    one = choose_kind(d.camera, d.cam_from_world[:1], dd.times_us[:1], d.boxes[:1])
+    assert one.kind == "static" and "single frame" in one.reason
+    with pytest.raises(ValueError, match="one entry per frame"):
+        choose_kind(d.camera, d.cam_from_world, dd.times_us[:3], d.boxes)
+
+
+def test_cli_fit_auto_writes_the_choice_and_fits_extended(dynamic_flight, tmp_path):
+    flight = tmp_path / "f"
+    shutil.copytree(dynamic_flight, flight)
+    out = tmp_path / "fields"
+    r = subprocess.run([sys.executable, "-m", "agent.cli", "fit", str(flight), "--kind", "auto", "--iters", "2",
+                        "--budget-s", "0", "--samples", "4", "--batch-rays", "64", "--out", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "--kind auto: dynamic" in r.stdout
+    choice = json.loads((out / "kind.json").read_text())
+    assert choice["kind"] == "dynamic"
+    fit = json.loads((out / "fit.json").read_text())
+    assert fit["kind"] == "kplanes-ext" and fit["kind_choice"]["kind"] == "dynamic"
+    assert fit["planes"]["time_resolution"] == time_resolution(SPEC.frames) == 6
+    assert len(fit["heldout"]["frames"]) == SPEC.frames // 2
+    model, _ = load_dynamic_checkpoint(out / "dynamic.pt", "cpu")
+    assert model.kind == "kplanes-ext"
+    # render the fitted dynamic field at the paper's dynamic novel poses (t, t +- dt)
+    from fields.novel_poses import dynamic_novel_poses
+
+    pf = PosesFile.load(flight / "derived" / "poses.json")
+    pf.frames = dynamic_novel_poses(pf.frames, 2, 2.0)
+    pf.camera = pf.camera.scaled(0.5)
+    pf.save(tmp_path / "novel.json")
+    r = subprocess.run([sys.executable, "-m", "agent.cli", "render", str(flight),
+                        "--poses", str(tmp_path / "novel.json"), "--out", str(tmp_path / "renders"),
+                        "--checkpoint", str(out / "dynamic.pt"), "--masks"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert len(list((tmp_path / "renders").glob("pose_*_mask.png"))) == 6
+
+
+# ---- data -------------------------------------------------------------------------------------
+def test_times_normalise_and_alternate_split(dynamic_flight):
+    dd = load_dynamic_flight(dynamic_flight)
+    t = dd.t01()
+    assert t[0] == 0.0 and t[-1] == 1.0 and np.all(np.diff(t) > 0)
+    train, val = split(dd, 2)
+    assert train == list(range(0, 12, 2)) and val == list(range(1, 12, 2))
+    assert normalise_times(np.array([5, 5]), 5, 0).tolist() == [0.0, 0.0]
+    assert normalise_times(np.array([-10, 50]), 0, 20).tolist() == [0.0, 1.0]
+    assert time_resolution(1) == 2 and time_resolution(300) == 150
+
+
+def test_out_of_order_timestamps(dynamic_flight, tmp_path):
+    flight = tmp_path / "f"
+    shutil.copytree(dynamic_flight, flight)
+    pf = PosesFile.load(flight / "derived" / "poses.json")
+    rng = np.random.default_rng(0)
+    pf.frames = [pf.frames[i] for i in rng.permutation(len(pf.frames))]
+    pf.save(flight / "derived" / "poses.json")
+    dd = load_dynamic_flight(flight)
+    by_name = dict(zip(dd.data.names, dd.t01(), strict=True))
+    assert by_name["000000.png"] == 0.0 and by_name["000011.png"] == 1.0
+    train, val = split(dd, 2)
+    assert sorted(dd.data.names[i] for i in val) == [f"{k:06d}.png" for k in range(1, 12, 2)]
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", **TINY))
+    assert r.step == 3
+
+
+def test_missing_capture_time_is_a_clear_error(dynamic_flight, tmp_path):
+    from fields.data import FlightDataError
+
+    flight = tmp_path / "f"
+    shutil.copytree(dynamic_flight, flight)
+    pf = PosesFile.load(flight / "derived" / "poses.json")
+    pf.frames[3].t_unix_us = None
+    pf.save(flight / "derived" / "poses.json")
+    dd = load_dynamic_flight(flight)  # falls back to frames.csv
+    assert dd.times_us[3] == dd.times_us[2] + 500_000
+    (flight / "frames.csv").write_text("frame,t_unix_us\n")
+    with pytest.raises(FlightDataError, match="no capture time"):
+        load_dynamic_flight(flight)
+
+
+def test_noisy_poses_zero_noise_and_unsorted_times():
+    poses = SPEC.true_poses()[:4]
+    times = [1.5, 0.0, 1.0, 0.5]
+    zero = PoseNoise(0, 0, 30, 0, 5, 0, 0)
+    for a, b in zip(poses, noisy_poses(poses, times, zero), strict=True):
+        assert np.allclose(a, b, atol=1e-9)
+    noisy = noisy_poses(poses, times, PoseNoise())
+    centres = [(-T[:3, :3].T @ T[:3, 3]) for T in noisy]
+    true = [(-T[:3, :3].T @ T[:3, 3]) for T in poses]
+    err = np.linalg.norm(np.array(centres) - np.array(true), axis=1)
+    assert np.all(err > 0) and np.all(err < 5)
+
+
+def test_plane_sizing_rejects_bad_extent():
+    s = plane_sizing((40.0, 20.0, 5.0), 0.1, max_resolution=64)
+    assert s.base_resolution == (16, 8, 2) and s.finest_cell_m == pytest.approx(40 / 64)
+    with pytest.raises(ValueError, match="extent"):
+        plane_sizing((np.nan, 1.0, 1.0), 0.1)
+
+
+# ---- model and trainer ------------------------------------------------------------------------
+def _model(dd, kind):
+    from fields.dynamic_training import build_model
+
+    cfg = DynamicFitConfig(kind=kind, **TINY)
+    model, _, _ = build_model(dd, list(range(dd.n)), cfg, None)
+    return model
+
+
+@pytest.mark.parametrize("kind", ["kplanes", "kplanes-ext"])
+def test_fit_gradients_finite_and_checkpoint_round_trip(dynamic_flight, tmp_path, kind):
+    dd = load_dynamic_flight(dynamic_flight)
+    r = fit_dynamic(dd, DynamicFitConfig(kind=kind, **TINY), out_dir=tmp_path)
+    for p in r.model.parameters():
+        assert torch.isfinite(p).all()
+    model, ck = load_dynamic_checkpoint(tmp_path / "dynamic.pt", "cpu")
+    assert ck["step"] == 3 and model.kind == kind
+    a = r.model.render_image(dd.data.camera.scaled(0.25), dd.data.cam_from_world[1], 0.3)
+    b = model.render_image(dd.data.camera.scaled(0.25), dd.data.cam_from_world[1], 0.3)
+    assert np.allclose(a["rgb"], b["rgb"], atol=1e-6)
+    assert ("dynamic" in a) == (kind == "kplanes-ext")
+    ev = evaluate_dynamic(model, dd, [1])
+    assert np.isfinite(ev["psnr"])
+
+
+def test_resume_continues_the_step_count(dynamic_flight, tmp_path):
+    dd = load_dynamic_flight(dynamic_flight)
+    fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **TINY), out_dir=tmp_path)
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **{**TINY, "iters": 5}), out_dir=tmp_path, resume=True)
+    assert r.step == 5
+    with pytest.raises(ValueError, match="holds a kplanes-ext"):
+        fit_dynamic(dd, DynamicFitConfig(kind="kplanes", **TINY), out_dir=tmp_path, resume=True)
+
+
+def _plane_grads(model, gate_value, dd):
+    """Gradients of an RGB-only loss on the static and dynamic spatial planes for a constant gate."""
+    from fields.data import RayBank
+
+    torch.manual_seed(0)
+    bank = RayBank(dd.data.camera, dd.data.cam_from_world)
+    o, d = bank.rays(torch.zeros(256, dtype=torch.long), torch.randint(bank.hw, (256,)))
+    gate = torch.full((256,), float(gate_value))
+    res = model.render_rays(o, d, torch.full((256,), 0.5), dynamic_gate=gate, with_mask=False)
+    model.zero_grad()
+    res["rgb"].sum().backward()
+    enc = model.field.encoding
+    stat = sum(float(p.grad.abs().sum()) for p in enc.static_planes if p.grad is not None)
+    dyn = sum(float(p.grad.abs().sum()) for p in enc.dynamic_planes if p.grad is not None)
+    return stat, dyn
+
+
+def test_all_dynamic_mask_updates_only_dynamic_planes(dynamic_flight):
+    dd = load_dynamic_flight(dynamic_flight)
+    model = _model(dd, "kplanes-ext")
+    stat, dyn = _plane_grads(model, 1.0, dd)
+    assert stat == 0.0 and dyn > 0.0
+
+
+def test_empty_mask_updates_only_static_planes(dynamic_flight):
+    dd = load_dynamic_flight(dynamic_flight)
+    model = _model(dd, "kplanes-ext")
+    stat, dyn = _plane_grads(model, 0.0, dd)
+    assert stat > 0.0 and dyn == 0.0
+
+
+def test_flight_without_people_trains_the_extended_model(dynamic_flight, tmp_path):
+    """Empty label files (no person anywhere): all pixels static, the mask target is all zero."""
+    flight = tmp_path / "f"
+    shutil.copytree(dynamic_flight, flight)
+    for p in (flight / "labels").glob("*.txt"):
+        p.write_text("")
+    dd = load_dynamic_flight(flight)
+    assert not dd.dynamic_masks().any()
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **TINY))
+    assert all(torch.isfinite(p).all() for p in r.model.parameters())
+
+
+def test_single_frame_flight(dynamic_flight, tmp_path):
+    flight = tmp_path / "f"
+    shutil.copytree(dynamic_flight, flight)
+    pf = PosesFile.load(flight / "derived" / "poses.json")
+    pf.frames = pf.frames[:1]
+    pf.save(flight / "derived" / "poses.json")
+    dd = load_dynamic_flight(flight)
+    assert dd.n == 1 and dd.t01().tolist() == [0.0]
+    assert split(dd, 2) == ([0], [])
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **TINY))
+    assert r.model.field_config.planes.time_resolution == 2
+    assert r.model.time01(None) == 0.0
+
+
+def test_model_rejects_mismatched_kind(dynamic_flight):
+    dd = load_dynamic_flight(dynamic_flight)
+    m = _model(dd, "kplanes")
+    with pytest.raises(ValueError, match="does not match"):
+        DynamicModel("kplanes-ext", m.field_config, m.sampler_config, 0.0, 10.0)
