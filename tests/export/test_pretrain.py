@@ -5,8 +5,15 @@ import json
 import pytest
 
 from agent.replay import resolve_base
-from export.pretrain import (PretrainConfig, base_info, check_base_for_world, default_base_dir, find_base,
-                             pretrain_base, render_data)
+from export.pretrain import (
+    PretrainConfig,
+    base_info,
+    check_base_for_world,
+    default_base_dir,
+    find_base,
+    pretrain_base,
+    render_data,
+)
 from export.train import load_checkpoint
 
 
