@@ -5,7 +5,8 @@ every 8th held out) written as a recorded flight with true poses (fields.simscen
 configuration: fit with a wall-clock budget; at fractions of the budget, PSNR on held-out 15 m
 frames and against simulator truth at 35 m (radius 15, pitch -70) and 50 m (radius 10, pitch -80),
 4 azimuths each; full-frame PSNR and "covered" PSNR (pixels whose ground point was seen by >= 2
-training frames). At the end, mask box IoU on held-out frames (people >= 6 px). Evaluation renders
+training frames). At the end, mask box IoU on held-out frames (people >= 6 px) and the model is saved
+as bench/out/fields_CONFIG.pt (input of bench/synthesis.py). Evaluation renders
 at half resolution (160x120, truth area-averaged from 320x240) to keep the benchmark affordable
 on a busy 2-core machine; evaluation time is not counted as training time.
 
@@ -98,7 +99,7 @@ def main() -> None:
     ap.add_argument("--budget-s", type=float, default=300.0)
     ap.add_argument("--configs", default=",".join(CONFIGS))
     ap.add_argument("--eval-fractions", default="0.5,1.0")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=int(os.environ.get("OMP_NUM_THREADS", "2")))
     ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
@@ -107,7 +108,7 @@ def main() -> None:
 
     from fields.data import load_flight
     from fields.evaluation import psnr, ssim
-    from fields.training import FitConfig, evaluate_frames, fit
+    from fields.training import FitConfig, evaluate_frames, fit, save_checkpoint
 
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
@@ -158,6 +159,7 @@ def main() -> None:
         print(f"{name}: fitting for {args.budget_s:.0f} s; {load_avg()}", flush=True)
         res = fit(data, cfg, on_eval=on_eval, eval_at_s=[f * args.budget_s for f in fractions[:-1]])
         on_eval(res.model, res.step, res.train_s)
+        save_checkpoint(OUT_DIR / f"fields_{name}.pt", res.model, None, res.step, res.train_s, cfg, {})
         masks = evaluate_frames(res.model, data, test_idx[:3])  # full resolution, 3 frames
         n = res.model.param_count()
         results.append({"config": name, **spec, "params": n, "mb": round(n * 4 / 1e6, 2), "steps": res.step,
@@ -188,7 +190,7 @@ def plot(results: list[dict]) -> None:
             ax.plot([p["train_s"] for p in r["points"]], [p[k] for p in r["points"]], "o-",
                     label=f"{r['config']} ({r['mb']:.0f} MB)")
         ax.set_title(title)
-        ax.set_xlabel("training seconds (2 threads, shared machine)")
+        ax.set_xlabel("training seconds")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("PSNR (dB)")
     axes[0].legend(fontsize=7)
