@@ -95,8 +95,10 @@ def main() -> None:
         raise ValueError(f"--size {args.size} does not keep the flight camera's aspect "
                          f"({camera.width}x{camera.height})")
     real = [data.cam_from_world[i] for i in train_idx]
-    opts = NovelPoseOptions(altitudes_m=(35.0, 50.0), count=args.count, poses_per_trajectory=1, seed=0)
-    novel = static_novel_poses(cam, real, opts, ground_z=model.background.ground_z)
+    novel = []
+    for k, alt in enumerate((35.0, 50.0)):  # half the views at each altitude
+        opts = NovelPoseOptions(altitudes_m=(alt,), count=(args.count + 1 - k) // 2, poses_per_trajectory=1, seed=k)
+        novel += static_novel_poses(cam, real, opts, ground_z=model.background.ground_z)
     kept = [p for p in novel if p.kept]
     print(f"{len(kept)} novel poses kept, {len(novel) - len(kept)} dropped", flush=True)
 

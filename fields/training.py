@@ -3,10 +3,12 @@ budget and/or an iteration count, held-out evaluation, checkpoint and resume.
 
 Losses: MSE on RGB; ``lambda_dist`` x the distortion loss (pulls each ray's weight onto one surface,
 the main defence against floaters that show up at higher altitudes); ``lambda_mask`` x the
-negative log-likelihood of the frame's filled-box class at the pixel (foreground pixels weighted
-``mask_fg_weight`` since people cover ~1 % of a frame); ``lambda_empty`` x the mean density of random
-points in the upper part of the slab that no training ray saw as opaque (a weak prior that air is
-empty unless the images say otherwise).
+negative log-likelihood of the frame's filled-box class at the pixel (people cover ~1 % of a frame,
+so ``mask_pos_fraction`` of each batch is drawn from box pixels, importance-weighted so the loss
+stays unbiased: a ground point inside a person's box in few views must stay background; an extra
+``mask_fg_weight`` on box pixels biases that and grows the blobs); ``lambda_empty`` x the mean
+density of random points in the upper part of the slab that no training ray saw as opaque (a weak
+prior that air is empty unless the images say otherwise).
 """
 
 from __future__ import annotations
@@ -66,7 +68,7 @@ class FitConfig:
     hidden: int = 64
     lambda_dist: float = 2e-3
     lambda_mask: float = 0.05
-    mask_fg_weight: float = 4.0
+    mask_fg_weight: float = 1.0
     #: "grid" (the mask's own small hash grid) or "geometry" (a head on the detached geometry features)
     mask_encoding: str = "grid"
     mask_log2_table: int = 16
@@ -230,6 +232,11 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     fg_w[1:] = cfg.mask_fg_weight
     pos_frame, pos_pixel = _positive_pixels(masks, has_mask, train_t)
     n_pos = int(round(cfg.mask_pos_fraction * cfg.batch_rays)) if cfg.lambda_mask > 0 and len(pos_frame) else 0
+    # importance weights (background, box pixel) so that oversampling keeps the mask loss unbiased:
+    # the ray mixture draws a box pixel with probability (B_u/B)/N + (B_p/B)/N_pos, a background one (B_u/B)/N
+    n_all, n_uni = len(train_idx) * hw, cfg.batch_rays - n_pos
+    iw = torch.tensor([cfg.batch_rays / n_uni, cfg.batch_rays / (n_uni + n_pos * n_all / max(len(pos_frame), 1))],
+                      device=dev)
     evals_s = sorted(eval_at_s or [])
     evals_i = sorted(eval_at_iters or [])
 
@@ -265,7 +272,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
                 if m_ok.any():
                     tgt = masks[fi, pi][m_ok]
                     nll = -torch.log(res["mask_probs"][m_ok].clamp_min(1e-6)).gather(1, tgt[:, None])[:, 0]
-                    loss = loss + cfg.lambda_mask * (nll * fg_w[tgt]).mean()
+                    loss = loss + cfg.lambda_mask * (nll * fg_w[tgt] * iw[(tgt > 0).long()]).mean()
             if cfg.lambda_empty > 0:
                 lo, hi = model.field.lo, model.field.hi
                 u = torch.rand(4096, 3, device=dev, generator=gen)
