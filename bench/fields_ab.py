@@ -42,7 +42,9 @@ def parse_variant(text: str) -> tuple[str, dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--iters", type=int, default=400)
-    ap.add_argument("--variant", action="append", required=True, help="name:key=value,... (FitConfig fields)")
+    ap.add_argument("--variant", action="append", default=[], help="name:key=value,... (FitConfig fields)")
+    ap.add_argument("--masks-of", default="", help="no training: mask box IoU on all held-out frames of the saved "
+                                                   "models bench/out/ab_NAME.pt (comma-separated names)")
     ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
     ap.add_argument("--json", default="fields_ab")
     ap.add_argument("--save", action="store_true", help="keep each variant's model as bench/out/ab_NAME.pt")
@@ -52,13 +54,20 @@ def main() -> None:
 
     from fields.data import load_flight
     from fields.evaluation import psnr
-    from fields.training import FitConfig, evaluate_frames, fit, save_checkpoint
+    from fields.training import FitConfig, evaluate_frames, fit, load_checkpoint, save_checkpoint
 
     camera, views = prepare(args.flight)
     data = load_flight(args.flight)
     _, test_idx = data.split(8)
     cam_half = camera.scaled(0.5)
     rows = []
+    for name in filter(None, args.masks_of.split(",")):
+        model, ck = load_checkpoint(OUT_DIR / f"ab_{name}.pt", "cpu")
+        m = evaluate_frames(model, data, test_idx)
+        rows.append({"variant": name, "steps": ck["step"], "mask_box_iou_all_heldout": m["box_iou_mean"],
+                     "mask_iou_ge_05": m["box_iou_ge_0.5"], "mask_boxes": m["boxes_evaluated"]})
+        print(json.dumps(rows[-1]), flush=True)
+        write_json(args.json, {"rows": rows})
     for text in args.variant:
         name, over = parse_variant(text)
         cfg = FitConfig(iters=args.iters, budget_s=None, threads=torch.get_num_threads(), **over)
