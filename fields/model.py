@@ -131,7 +131,9 @@ class StaticModel(nn.Module):
         if fast and self.sampler_config.skip_threshold > 0:
             if self.skip_grid is None:
                 self.build_skip_grid()
-            keep = self._occupied(pts).nonzero()[:, 0]
+            occ = self._occupied(pts).view(r, s)
+            occ[:, -1] = True  # the last interval may be the opaque floor: its colour must be real
+            keep = occ.view(-1).nonzero()[:, 0]
             sig_k, geo_k = f.geometry(pts[keep])
             sigma = torch.zeros(r * s, device=pts.device).index_copy_(0, keep, sig_k)
             geo = torch.zeros(r * s, geo_k.shape[1], device=pts.device).index_copy_(0, keep, geo_k)

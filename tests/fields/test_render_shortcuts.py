@@ -54,6 +54,26 @@ def test_skip_grid_render_matches_exact_render_and_skips_empty_air():
     assert grid_share < 0.3 and n_fast < 0.4 * n_exact
 
 
+def test_rays_through_empty_air_end_on_the_opaque_floor_with_its_real_colour():
+    # nothing but air: every ray exits through the slab's floor, whose (opaque) colour must be evaluated
+    m = _thin_ground_model([])
+    geometry = m.field.geometry
+
+    def air(points):
+        sigma, geo = geometry(points)
+        return torch.zeros_like(sigma), geo
+
+    m.field.geometry = air
+    m.field.density = lambda p: air(p)[0]
+    cam = Camera.from_fov(32, 24, 70.0, Mount(pitch_deg=-80))
+    T = orbit_pose(30, 5, -80, 40)
+    fast = m.render_image(cam, T)
+    assert not m.skip_grid.any()
+    m.sampler_config.skip_threshold, m.sampler_config.min_weight = 0.0, 0.0
+    exact = m.render_image(cam, T)
+    assert np.abs(fast["rgb"] - exact["rgb"]).max() < 1e-5
+
+
 def test_training_mode_drops_the_skip_grid():
     m = _thin_ground_model([])
     m.build_skip_grid()
