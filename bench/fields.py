@@ -32,6 +32,7 @@ from bench._common import OUT_DIR, write_json  # noqa: E402
 
 CONFIGS = {
     "hash-strat": {"encoding": "hash", "sampler": "stratified", "n_samples": 32},
+    "hash-strat-pos25": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.25},
     "hash-strat-bg384": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "background_resolution": 384},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},

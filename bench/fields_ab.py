@@ -46,7 +46,7 @@ def main() -> None:
     ap.add_argument("--masks-of", default="", help="no training: mask box IoU on all held-out frames of the saved "
                                                    "models bench/out/ab_NAME.pt (comma-separated names)")
     ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
-    ap.add_argument("--json", default="fields_ab")
+    ap.add_argument("--json", default=None, help="output path (default bench/out/fields_ab.json)")
     ap.add_argument("--save", action="store_true", help="keep each variant's model as bench/out/ab_NAME.pt")
     args = ap.parse_args()
 
@@ -67,7 +67,7 @@ def main() -> None:
         rows.append({"variant": name, "steps": ck["step"], "mask_box_iou_all_heldout": m["box_iou_mean"],
                      "mask_iou_ge_05": m["box_iou_ge_0.5"], "mask_boxes": m["boxes_evaluated"]})
         print(json.dumps(rows[-1]), flush=True)
-        write_json(args.json, {"rows": rows})
+        write_json("fields_ab", {"rows": rows}, args.json)
     for text in args.variant:
         name, over = parse_variant(text)
         cfg = FitConfig(iters=args.iters, budget_s=None, threads=torch.get_num_threads(), **over)
@@ -91,7 +91,7 @@ def main() -> None:
                    load_start=load0, load_end=load_avg())
         rows.append(row)
         print(json.dumps(row), flush=True)
-        write_json(args.json, {"iters": args.iters, "rows": rows})
+        write_json("fields_ab", {"iters": args.iters, "rows": rows}, args.json)
 
 
 if __name__ == "__main__":
