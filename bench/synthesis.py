@@ -12,7 +12,7 @@ class; smaller people neither missed nor false positives), class-agnostic as wel
 of the image. Speed: synthetic images per minute (render + boxes + writing) on this process's
 threads.
 
-    python bench/synthesis.py [--config hash-strat-pos25] [--count 8] [--size 640x480]
+    python bench/synthesis.py [--config hash-strat] [--count 8] [--size 640x480]
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ class Recorder:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--config", default="hash-strat-pos25", help="bench/fields.py config whose checkpoint to use")
+    ap.add_argument("--config", default="hash-strat", help="bench/fields.py config whose checkpoint to use")
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--fit-budget-s", type=float, default=300.0, help="fit this long when there is no checkpoint")
     ap.add_argument("--count", type=int, default=8, help="novel views (half at 35 m, half at 50 m)")

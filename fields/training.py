@@ -73,7 +73,7 @@ class FitConfig:
     mask_encoding: str = "grid"
     mask_log2_table: int = 16
     #: share of each ray batch drawn from pixels inside label boxes (0: uniform over all pixels)
-    mask_pos_fraction: float = 0.25
+    mask_pos_fraction: float = 0.0
     lambda_empty: float = 0.0
     occupancy_every: int = 16
     occupancy_warmup: int = 200
