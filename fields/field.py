@@ -4,10 +4,14 @@ Geometry: encoding(x01) -> small MLP -> raw density + a geometry feature vector.
 ``trunc_exp(raw)`` (exp forward, gradient computed with the exponent clamped at 15, as Nerfacto).
 Colour: geometry feature + per-image appearance embedding (+ optional spherical-harmonics view
 direction, degree 2) -> MLP -> sigmoid RGB in [0, 1] (linear in the stored 8-bit sRGB values).
-Mask: a small MLP head on the same geometry feature (detached: the mask loss trains only the
-head) -> logits over ``n_classes + 1`` classes, index 0 = background, ``k + 1`` = object class
-``k`` (classes.txt order). Image and mask come from one geometry (this replaces the paper's second
-field).
+Mask: logits over ``n_classes + 1`` classes, index 0 = background, ``k + 1`` = object class ``k``
+(classes.txt order), from either
+- ``mask_encoding="grid"`` (default): its own small hash grid read at the same points + a small MLP, or
+- ``mask_encoding="geometry"``: a small MLP on the (detached) geometry feature.
+Either way the mask loss cannot change the density (the model composites the mask with detached
+weights), so image and mask come from one geometry (this replaces the paper's second field)
+while the mask has capacity of its own (measured in bench/RESULTS.md: the head on geometry
+features alone did not learn the people).
 
 Points are world ENU metres; the field maps them into its scene box (``aabb`` lo, hi) to [0, 1].
 """
@@ -69,16 +73,25 @@ class FieldConfig:
     n_classes: int = 3
     #: added to the raw density before trunc_exp (negative: the box starts nearly empty)
     density_bias: float = -1.0
+    #: "grid" (own hash grid for the mask) or "geometry" (head on the detached geometry features)
+    mask_encoding: str = "grid"
+    mask_resolutions: list = field(default_factory=lambda: [(16, 16, 4), (64, 64, 16)])
+    mask_features: int = 2
+    mask_log2_table: int = 16
 
     def to_json(self) -> dict:
         d = asdict(self)
         d["resolutions"] = [list(r) for r in self.resolutions]
+        d["mask_resolutions"] = [list(r) for r in self.mask_resolutions]
         return d
 
     @classmethod
     def from_json(cls, d: dict) -> FieldConfig:
         d = dict(d)
+        d.setdefault("mask_encoding", "geometry")  # checkpoints from before the mask grid
         d["resolutions"] = [tuple(r) for r in d["resolutions"]]
+        if "mask_resolutions" in d:
+            d["mask_resolutions"] = [tuple(r) for r in d["mask_resolutions"]]
         d["aabb_lo"], d["aabb_hi"] = tuple(d["aabb_lo"]), tuple(d["aabb_hi"])
         return cls(**d)
 
@@ -100,8 +113,16 @@ class StaticField(nn.Module):
         in_c = config.geo_features + config.appearance_dim + (9 if config.view_dependent else 0)
         self.color_mlp = nn.Sequential(nn.Linear(in_c, h), nn.ReLU(), nn.Linear(h, h), nn.ReLU(),
                                        nn.Linear(h, 3))
-        self.mask_head = nn.Sequential(nn.Linear(config.geo_features, 32), nn.ReLU(),
-                                       nn.Linear(32, config.n_classes + 1))
+        if config.mask_encoding == "grid":
+            self.mask_grid = make_encoding("hash", config.mask_resolutions, config.mask_features,
+                                           config.mask_log2_table)
+            mask_in = self.mask_grid.out_dim
+        elif config.mask_encoding == "geometry":
+            self.mask_grid = None
+            mask_in = config.geo_features
+        else:
+            raise ValueError(f"unknown mask_encoding {config.mask_encoding!r}; expected 'grid' or 'geometry'")
+        self.mask_head = nn.Sequential(nn.Linear(mask_in, 32), nn.ReLU(), nn.Linear(32, config.n_classes + 1))
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         """World ENU metres -> [0, 1]^3 of the scene box (not clamped)."""
@@ -124,20 +145,29 @@ class StaticField(nn.Module):
             return self.appearance.weight.mean(0, keepdim=True).expand(n, -1)
         return self.appearance(image_idx)
 
-    def forward(self, points, dirs=None, image_idx=None, with_mask: bool = True) -> dict:
-        """``points`` (N, 3), ``dirs`` (N, 3) unit or None, ``image_idx`` (N,) long or None."""
-        sigma, geo = self.geometry(points)
-        parts = [geo, self.appearance_code(image_idx, points.shape[0])]
+    def color(self, geo: torch.Tensor, dirs=None, image_idx=None) -> torch.Tensor:
+        """RGB (N, 3) in [0, 1] from geometry features (N, G), directions and image indices."""
+        parts = [geo, self.appearance_code(image_idx, geo.shape[0])]
         if self.config.view_dependent:
             if dirs is None:
                 raise ValueError("this field is view dependent: pass ray directions")
             parts.append(sh_encoding_deg2(dirs))
-        rgb = torch.sigmoid(self.color_mlp(torch.cat(parts, dim=-1)).float())
-        out = {"sigma": sigma, "rgb": rgb}
+        return torch.sigmoid(self.color_mlp(torch.cat(parts, dim=-1)).float())
+
+    def mask_logits(self, points: torch.Tensor, geo: torch.Tensor) -> torch.Tensor:
+        """Class logits (N, C+1) at world points; ``geo`` their geometry features (used detached)."""
+        if self.mask_grid is not None:
+            return self.mask_head(self.mask_grid(self.normalise(points))).float()
+        # detached: the head reads the geometry features but its loss cannot change them
+        # (measured: through the shared features the mask loss stalled RGB at 16.7 dB vs 28.1 dB)
+        return self.mask_head(geo.detach()).float()
+
+    def forward(self, points, dirs=None, image_idx=None, with_mask: bool = True) -> dict:
+        """``points`` (N, 3), ``dirs`` (N, 3) unit or None, ``image_idx`` (N,) long or None."""
+        sigma, geo = self.geometry(points)
+        out = {"sigma": sigma, "rgb": self.color(geo, dirs, image_idx)}
         if with_mask:
-            # detached: the mask head reads the geometry features but its loss cannot change them
-            # (measured: through the shared features the mask loss stalled RGB at 16.7 dB vs 28.1 dB)
-            out["mask_logits"] = self.mask_head(geo.detach()).float()
+            out["mask_logits"] = self.mask_logits(points, geo)
         return out
 
 

@@ -15,7 +15,7 @@ from telemetry.camera import Camera
 
 
 class FieldViewRenderer:
-    def __init__(self, model, n_classes: int, chunk: int = 16384):
+    def __init__(self, model, n_classes: int, chunk: int = 4096):
         self.model = model.eval()
         self.n_classes = n_classes
         self.chunk = chunk

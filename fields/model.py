@@ -27,6 +27,10 @@ class SamplerConfig:
     grid_shape: tuple[int, int, int] = (128, 128, 16)
     #: rays that exit through the slab's floor end opaque there (no background seen through the ground)
     opaque_floor: bool = True
+    #: rendering only: density (1/m) below which a skip-grid cell counts as empty (0: no skipping)
+    skip_threshold: float = 1e-2
+    #: colour and mask are evaluated only at samples with at least this rendering weight
+    min_weight: float = 1e-4
 
 
 def make_sampler(cfg: SamplerConfig):
@@ -41,44 +45,101 @@ class StaticModel(nn.Module):
     """Field, background and sampler; :meth:`render_rays` is the only entry point for rendering."""
 
     def __init__(self, field_config: FieldConfig, sampler_config: SamplerConfig, ground_z: float,
-                 background_radius_m: float):
+                 background_radius_m: float, background_resolution: int = 64):
         super().__init__()
         self.field_config, self.sampler_config = field_config, sampler_config
         self.field = StaticField(field_config)
-        self.background = Background(ground_z, background_radius_m)
+        self.background = Background(ground_z, background_radius_m, background_resolution)
         self.sampler = make_sampler(sampler_config)
+        self.skip_grid: torch.Tensor | None = None
 
     # ---- checkpoint ---------------------------------------------------------------------
     def describe(self) -> dict:
         return {"field": self.field_config.to_json(), "sampler": {**asdict(self.sampler_config),
                                                                   "grid_shape": list(self.sampler_config.grid_shape)},
-                "ground_z": self.background.ground_z, "background_radius_m": self.background.radius_m}
+                "ground_z": self.background.ground_z, "background_radius_m": self.background.radius_m,
+                "background_resolution": self.background.texture.shape[-1]}
 
     @classmethod
     def from_description(cls, d: dict) -> StaticModel:
         s = dict(d["sampler"])
         s["grid_shape"] = tuple(s["grid_shape"])
-        return cls(FieldConfig.from_json(d["field"]), SamplerConfig(**s), d["ground_z"], d["background_radius_m"])
+        if "skip_threshold" not in s:  # checkpoints from before the skip grid: render exactly as then
+            s["skip_threshold"], s["min_weight"] = 0.0, 0.0
+        return cls(FieldConfig.from_json(d["field"]), SamplerConfig(**s), d["ground_z"], d["background_radius_m"],
+                   d.get("background_resolution", 64))
 
     def param_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
     # ---- rendering ----------------------------------------------------------------------
+    def train(self, mode: bool = True):
+        if mode:
+            self.skip_grid = None  # the field changes while training: rebuild before the next render
+        return super().train(mode)
+
+    @torch.no_grad()
+    def build_skip_grid(self, threshold: float | None = None) -> torch.Tensor:
+        """Occupancy of the field for rendering (not training): (gx, gy, gz) bool over the scene box.
+
+        Density is evaluated at every cell corner; a cell is occupied when any of its 8 corners has
+        ``sigma >= threshold`` (default ``SamplerConfig.skip_threshold``), then dilated by one cell
+        in every direction so thin or small objects between corners are not lost. Samples in empty
+        cells are skipped (density 0) by :meth:`render_rays` in eval mode.
+        """
+        thr = self.sampler_config.skip_threshold if threshold is None else threshold
+        gx, gy, gz = self.sampler_config.grid_shape
+        f = self.field
+        axes = [torch.linspace(0.0, 1.0, n + 1, device=f.lo.device) for n in (gx, gy, gz)]
+        corners = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).view(-1, 3)
+        pts = f.lo + corners * (f.hi - f.lo)
+        sig = torch.cat([f.density(p) for p in pts.split(65536)]).view(gx + 1, gy + 1, gz + 1)
+        occ = (sig >= thr).float()[None, None]
+        occ = torch.nn.functional.max_pool3d(occ, 2, stride=1)  # any corner of the cell
+        occ = torch.nn.functional.max_pool3d(occ, 3, stride=1, padding=1)  # dilate by one cell
+        self.skip_grid = occ[0, 0] > 0
+        return self.skip_grid
+
+    def _occupied(self, pts: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the skip grid's cell of each point (N, 3) is occupied (outside the box: False)."""
+        f, grid = self.field, self.skip_grid
+        shape = torch.tensor(grid.shape, device=pts.device)
+        x = (pts - f.lo) / (f.hi - f.lo)
+        inside = ((x >= 0) & (x <= 1)).all(-1)
+        ijk = torch.minimum((x.clamp(0, 1) * shape).long(), shape - 1)
+        return inside & grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+
     def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, image_idx: torch.Tensor | None = None,
                     train: bool = False, with_mask: bool = True, generator=None) -> dict:
         """Render R rays: ``rgb`` (R,3), ``acc`` (R,1), ``depth`` (R,1), ``mask_probs`` (R,C+1),
-        and for the losses ``weights`` (R,S) and ``t_norm`` (R,S+1) (edges scaled to [0,1] per ray)."""
+        and for the losses ``weights`` (R,S) and ``t_norm`` (R,S+1) (edges scaled to [0,1] per ray).
+
+        In eval mode without gradients (rendering), three shortcuts, each bounded by a stated error:
+        samples in cells the skip grid marks empty get density 0 (:meth:`build_skip_grid`), and
+        colour and mask are evaluated only at samples whose weight is >= ``SamplerConfig.min_weight``
+        (so samples behind the surface, where transmittance has died, cost only their density).
+        The mask is always evaluated only at such samples (its loss never needs the others).
+        """
         f = self.field
+        fast = not train and not torch.is_grad_enabled() and not self.training
         edges = self.sampler.edges(origins, dirs, f.lo, f.hi, train=train, generator=generator)
         r, s1 = edges.shape
         s = s1 - 1
         mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
         deltas = edges[:, 1:] - edges[:, :-1]
         pts = (origins[:, None, :] + mid[..., None] * dirs[:, None, :]).reshape(-1, 3)
-        d_rep = dirs[:, None, :].expand(r, s, 3).reshape(-1, 3)
-        i_rep = None if image_idx is None else image_idx[:, None].expand(r, s).reshape(-1)
-        out = f(pts, d_rep, i_rep, with_mask=with_mask)
-        sigma = out["sigma"].view(r, s)
+        if fast and self.sampler_config.skip_threshold > 0:
+            if self.skip_grid is None:
+                self.build_skip_grid()
+            occ = self._occupied(pts).view(r, s)
+            occ[:, -1] = True  # the last interval may be the opaque floor: its colour must be real
+            keep = occ.view(-1).nonzero()[:, 0]
+            sig_k, geo_k = f.geometry(pts[keep])
+            sigma = torch.zeros(r * s, device=pts.device).index_copy_(0, keep, sig_k)
+            geo = torch.zeros(r * s, geo_k.shape[1], device=pts.device).index_copy_(0, keep, geo_k)
+        else:
+            sigma, geo = f.geometry(pts)
+        sigma = sigma.view(r, s)
         if self.sampler_config.opaque_floor:
             # rays leaving the slab through its floor must end in the field: an opaque last interval
             # (else "all transparent + background texture" is a blurry local minimum, measured 16.8 dB)
@@ -86,34 +147,49 @@ class StaticModel(nn.Module):
             last = torch.where(floor, torch.full_like(sigma[:, -1], 1e4), sigma[:, -1])
             sigma = torch.cat([sigma[:, :-1], last[:, None]], dim=-1)
         w = weights_from_density(sigma, deltas)
+        d_rep = dirs[:, None, :].expand(r, s, 3).reshape(-1, 3)
+        i_rep = None if image_idx is None else image_idx[:, None].expand(r, s).reshape(-1)
+        if fast:
+            live = (w.view(-1) >= self.sampler_config.min_weight).nonzero()[:, 0]
+            rgb = torch.zeros(r * s, 3, device=pts.device).index_copy_(
+                0, live, f.color(geo[live], d_rep[live], None if i_rep is None else i_rep[live]))
+        else:
+            rgb = f.color(geo, d_rep, i_rep)
         bg = self.background(origins, dirs)
-        res = {"rgb": composite(w, out["rgb"].view(r, s, 3), bg), "acc": opacity(w),
+        res = {"rgb": composite(w, rgb.view(r, s, 3), bg), "acc": opacity(w),
                "depth": expected_depth(w, mid, edges[:, -1]), "weights": w}
         span = (edges[:, -1:] - edges[:, :1]).clamp_min(1e-6)
         res["t_norm"] = (edges - edges[:, :1]) / span
         if with_mask:
-            probs = torch.softmax(out["mask_logits"].view(r, s, -1), dim=-1)
-            bg_class = torch.zeros(probs.shape[-1], device=probs.device)
+            # weights detached: the mask reads the geometry but cannot carve it (else "background"
+            # is cheapest to explain by making the ground transparent); only samples that matter
+            wd = w.detach()
+            live = (wd.view(-1) >= self.sampler_config.min_weight).nonzero()[:, 0]
+            n_cls = f.config.n_classes + 1
+            probs = torch.zeros(r * s, n_cls, device=pts.device)
+            if len(live):
+                probs = probs.index_copy(0, live, torch.softmax(f.mask_logits(pts[live], geo[live]), dim=-1))
+            bg_class = torch.zeros(n_cls, device=probs.device)
             bg_class[0] = 1.0
-            # weights detached: the mask reads the geometry (shared features) but cannot carve it
-            # (else "background" is cheapest to explain by making the ground transparent)
-            res["mask_probs"] = composite(w.detach(), probs, bg_class)
+            res["mask_probs"] = composite(wd, probs.view(r, s, n_cls), bg_class)
         return res
 
     def distortion(self, res: dict) -> torch.Tensor:
         return distortion_loss(res["weights"], res["t_norm"]).mean()
 
     @torch.no_grad()
-    def render_image(self, camera, cam_from_world: np.ndarray, chunk: int = 16384, with_mask: bool = True,
+    def render_image(self, camera, cam_from_world: np.ndarray, chunk: int = 4096, with_mask: bool = True,
                      image_idx: int | None = None) -> dict:
         """Render a full frame: ``rgb`` (H,W,3) float in [0,1], ``mask`` (H,W) class ids (0 background),
-        ``acc`` (H,W), ``depth`` (H,W) metres along the ray. Novel views use the mean appearance."""
+        ``mask_probs`` (H,W,C+1) class probabilities (channel 0 background),
+        ``acc`` (H,W), ``depth`` (H,W) metres along the ray. Novel views use the mean appearance.
+        Call in eval mode for the rendering shortcuts of :meth:`render_rays`."""
         dev = self.field.lo.device
         uv = camera.pixel_grid().reshape(-1, 2)
         o, d = camera.rays_world(np.asarray(cam_from_world, np.float64), uv)
         o = torch.from_numpy(np.broadcast_to(o, d.shape).copy()).float().to(dev)
         d = torch.from_numpy(d).float().to(dev)
-        outs = {"rgb": [], "acc": [], "depth": [], "mask": []}
+        outs = {"rgb": [], "acc": [], "depth": [], "mask": [], "mask_probs": []}
         for a in range(0, d.shape[0], chunk):
             idx = None if image_idx is None else torch.full((min(chunk, d.shape[0] - a),), image_idx,
                                                             dtype=torch.long, device=dev)
@@ -123,8 +199,9 @@ class StaticModel(nn.Module):
             outs["depth"].append(res["depth"][:, 0])
             if with_mask:
                 outs["mask"].append(res["mask_probs"].argmax(-1))
+                outs["mask_probs"].append(res["mask_probs"])
         h, w = camera.height, camera.width
-        result = {k: torch.cat(v).view(h, w, *([3] if k == "rgb" else [])).cpu().numpy()
+        result = {k: torch.cat(v).view(h, w, -1 if k in ("rgb", "mask_probs") else 1).squeeze(-1).cpu().numpy()
                   for k, v in outs.items() if v}
         return result
 

@@ -166,7 +166,7 @@ class Sizing:
     reasoning: list[str]
 
 
-def _hash_params(resolutions, features, log2_table) -> int:
+def hash_params(resolutions, features, log2_table) -> int:
     return sum(min((r[0] + 1) * (r[1] + 1) * (r[2] + 1), 2**log2_table) for r in resolutions) * features
 
 
@@ -198,7 +198,7 @@ def size_model(bounds: SceneBounds, encoding: str = "hash", budget_mb: float = 1
         log2 = int(min(22, max(14, math.ceil(math.log2(surface)))))
         why.append(f"{levels} levels, growth {(coarsest / finest) ** (1 / max(levels - 1, 1)):.2f}; "
                    f"finest-level surface cells {surface:.3g} -> table 2^{log2}")
-        while log2 > 12 and _hash_params(resolutions, features, log2) > budget:
+        while log2 > 12 and hash_params(resolutions, features, log2) > budget:
             log2 -= 1
         why.append(f"table 2^{log2} x {features} features per level fits the {budget_mb:g} MB budget")
         return Sizing("hash", resolutions, features, log2, finest, coarsest, why)

@@ -3,10 +3,12 @@ budget and/or an iteration count, held-out evaluation, checkpoint and resume.
 
 Losses: MSE on RGB; ``lambda_dist`` x the distortion loss (pulls each ray's weight onto one surface,
 the main defence against floaters that show up at higher altitudes); ``lambda_mask`` x the
-negative log-likelihood of the frame's filled-box class at the pixel (foreground pixels weighted
-``mask_fg_weight`` since people cover ~1 % of a frame); ``lambda_empty`` x the mean density of random
-points in the upper part of the slab that no training ray saw as opaque (a weak prior that air is
-empty unless the images say otherwise).
+negative log-likelihood of the frame's filled-box class at the pixel (people cover ~1 % of a frame,
+so ``mask_pos_fraction`` of each batch is drawn from box pixels, importance-weighted so the loss
+stays unbiased: a ground point inside a person's box in few views must stay background; an extra
+``mask_fg_weight`` on box pixels biases that and grows the blobs); ``lambda_empty`` x the mean
+density of random points in the upper part of the slab that no training ray saw as opaque (a weak
+prior that air is empty unless the images say otherwise).
 """
 
 from __future__ import annotations
@@ -25,14 +27,17 @@ import numpy as np
 import torch
 
 from fields.data import FlightData, RayBank
-from fields.evaluation import MaskBox, boxes_from_mask, match_boxes, psnr, ssim
+from fields.evaluation import MaskBox, match_boxes, psnr, ssim
 from fields.field import FieldConfig
+from fields.mask_boxes import boxes_from_probabilities
 from fields.model import SamplerConfig, StaticModel
-from fields.scene import SceneBounds, Sizing, scene_bounds, size_model
+from fields.scene import SceneBounds, Sizing, hash_params, scene_bounds, size_model
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT = "static.pt"
+#: share of ``budget_mb`` set aside for the mask's own hash grid (``mask_encoding="grid"``)
+MASK_BUDGET_SHARE = 0.2
 
 
 @dataclass
@@ -56,14 +61,19 @@ class FitConfig:
     seed: int = 0
     #: CPU threads (None: torch's default)
     threads: int | None = None
-    budget_mb: float = 16.0
+    budget_mb: float = 20.0
     features: int | None = None
     view_dependent: bool = False
     appearance_dim: int = 8
     hidden: int = 64
     lambda_dist: float = 2e-3
     lambda_mask: float = 0.05
-    mask_fg_weight: float = 4.0
+    mask_fg_weight: float = 1.0
+    #: "grid" (the mask's own small hash grid) or "geometry" (a head on the detached geometry features)
+    mask_encoding: str = "grid"
+    mask_log2_table: int = 16
+    #: share of each ray batch drawn from pixels inside label boxes (0: uniform over all pixels)
+    mask_pos_fraction: float = 0.0
     lambda_empty: float = 0.0
     occupancy_every: int = 16
     occupancy_warmup: int = 200
@@ -71,6 +81,8 @@ class FitConfig:
     log_every_s: float = 10.0
     #: cell size multiplier over the finest GSD (1 = as fine as the data)
     cell_factor: float = 1.0
+    #: texels per side of the background ground texture (beyond the slab; contracted, inner disc = half)
+    background_resolution: int = 64
 
 
 @dataclass
@@ -100,20 +112,39 @@ def build_model(data: FlightData, train_idx: list[int], cfg: FitConfig, flight: 
     """Bounds, sizing and a fresh model for the training frames."""
     Ts = [data.cam_from_world[i] for i in train_idx]
     bounds = scene_bounds(flight, data.camera, Ts)
-    sizing = size_model(bounds, cfg.encoding, cfg.budget_mb, cfg.features, cell_factor=cfg.cell_factor)
+    geo_mb = cfg.budget_mb * (1.0 - MASK_BUDGET_SHARE if cfg.mask_encoding == "grid" else 1.0)
+    sizing = size_model(bounds, cfg.encoding, geo_mb, cfg.features, cell_factor=cfg.cell_factor)
+    mask_res, mask_log2 = _mask_grid(bounds, cfg, geo_mb, sizing)
     fc = FieldConfig(aabb_lo=bounds.lo, aabb_hi=bounds.hi, encoding=sizing.encoding,
                      resolutions=sizing.resolutions, features=sizing.features, log2_table=sizing.log2_table,
                      hidden=cfg.hidden, n_images=data.n, appearance_dim=cfg.appearance_dim,
-                     view_dependent=cfg.view_dependent, n_classes=len(data.classes))
+                     view_dependent=cfg.view_dependent, n_classes=len(data.classes),
+                     mask_encoding=cfg.mask_encoding, mask_resolutions=mask_res, mask_log2_table=mask_log2)
     ext = np.asarray(bounds.extent)
     grid = tuple(int(min(256, max(8, math.ceil(e / c)))) for e, c in zip(ext, (0.5, 0.5, 0.25), strict=True))
     sc = SamplerConfig(cfg.sampler, cfg.n_samples, 96, grid)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
-    return StaticModel(fc, sc, bounds.ground_z, radius), bounds, sizing
+    return StaticModel(fc, sc, bounds.ground_z, radius, cfg.background_resolution), bounds, sizing
+
+
+def _mask_grid(bounds: SceneBounds, cfg: FitConfig, geo_mb: float, sizing: Sizing) -> tuple[list, int]:
+    """The mask grid's levels (every second level of a hash sizing of the scene, ending at the finest)
+    and table size (``mask_log2_table``, halved until it fits ``MASK_BUDGET_SHARE`` of the budget)."""
+    res = size_model(bounds, "hash", geo_mb, cell_factor=cfg.cell_factor).resolutions[::-2][::-1]
+    log2 = cfg.mask_log2_table
+    budget = cfg.budget_mb * MASK_BUDGET_SHARE * 1e6 / 4
+    while log2 > 8 and hash_params(res, 2, log2) > budget:
+        log2 -= 1
+    if cfg.mask_encoding == "grid":
+        sizing.reasoning.append(f"mask grid: {len(res)} levels (every second, to the finest), table 2^{log2} x 2 "
+                                f"features, within {MASK_BUDGET_SHARE:.0%} of the {cfg.budget_mb:g} MB budget")
+    return res, log2
 
 
 def _optimizer(model: StaticModel, cfg: FitConfig):
     enc = list(model.field.encoding.parameters()) + list(model.background.parameters())
+    if model.field.mask_grid is not None:
+        enc += list(model.field.mask_grid.parameters())
     enc_ids = {id(p) for p in enc}
     rest = [p for p in model.parameters() if id(p) not in enc_ids]
     groups = [{"params": enc, "lr": cfg.lr, "eps": 1e-15, "scale": 1.0},
@@ -199,6 +230,13 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     scaler = torch.amp.GradScaler("cuda") if use_amp else None
     fg_w = torch.ones(len(data.classes) + 1, device=dev)
     fg_w[1:] = cfg.mask_fg_weight
+    pos_frame, pos_pixel = _positive_pixels(masks, has_mask, train_t)
+    n_pos = int(round(cfg.mask_pos_fraction * cfg.batch_rays)) if cfg.lambda_mask > 0 and len(pos_frame) else 0
+    # importance weights (background, box pixel) so that oversampling keeps the mask loss unbiased:
+    # the ray mixture draws a box pixel with probability (B_u/B)/N + (B_p/B)/N_pos, a background one (B_u/B)/N
+    n_all, n_uni = len(train_idx) * hw, cfg.batch_rays - n_pos
+    iw = torch.tensor([cfg.batch_rays / n_uni, cfg.batch_rays / (n_uni + n_pos * n_all / max(len(pos_frame), 1))],
+                      device=dev)
     evals_s = sorted(eval_at_s or [])
     evals_i = sorted(eval_at_iters or [])
 
@@ -216,8 +254,11 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         lr = cfg.lr * cfg.lr_final ** progress()
         for g in optim.param_groups:
             g["lr"] = lr * g.get("scale", 1.0)
-        fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays,), device=dev, generator=gen)]
-        pi = torch.randint(hw, (cfg.batch_rays,), device=dev, generator=gen)
+        fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays - n_pos,), device=dev, generator=gen)]
+        pi = torch.randint(hw, (cfg.batch_rays - n_pos,), device=dev, generator=gen)
+        if n_pos:  # oversampled pixels inside label boxes (people cover ~1 % of a frame)
+            k = torch.randint(len(pos_frame), (n_pos,), device=dev, generator=gen)
+            fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
         o, d = bank.rays(fi, pi)
         target = images[fi, pi].float() / 255.0
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
@@ -231,7 +272,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
                 if m_ok.any():
                     tgt = masks[fi, pi][m_ok]
                     nll = -torch.log(res["mask_probs"][m_ok].clamp_min(1e-6)).gather(1, tgt[:, None])[:, 0]
-                    loss = loss + cfg.lambda_mask * (nll * fg_w[tgt]).mean()
+                    loss = loss + cfg.lambda_mask * (nll * fg_w[tgt] * iw[(tgt > 0).long()]).mean()
             if cfg.lambda_empty > 0:
                 lo, hi = model.field.lo, model.field.hi
                 u = torch.rand(4096, 3, device=dev, generator=gen)
@@ -285,6 +326,13 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     return FitResult(model, step, train_s, curve, bounds, sizing)
 
 
+def _positive_pixels(masks: torch.Tensor, has_mask: torch.Tensor, train_t: torch.Tensor):
+    """(frame, pixel) indices of the training pixels inside label boxes (mask class > 0)."""
+    sel = train_t[has_mask[train_t]]
+    fr, px = (masks[sel] > 0).nonzero(as_tuple=True)
+    return sel[fr], px
+
+
 def _extra(bounds, sizing, curve, gen) -> dict:
     return {"bounds": bounds.to_json() if bounds else None, "sizing": asdict(sizing) if sizing else None,
             "curve": curve, "rng": gen.get_state()}
@@ -294,7 +342,8 @@ def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], mi
                     out_dir: Path | None = None) -> dict:
     """PSNR / SSIM of rendered frames against the recorded images (mean appearance, as for a novel
     view), and box IoU of mask blobs against the frames' label boxes (boxes >= ``min_box_px`` on
-    their shorter side). Optionally writes side-by-side PNGs."""
+    their shorter side); blobs -> boxes by the synthesis rules (``boxes_from_probabilities``
+    defaults). Optionally writes side-by-side PNGs."""
     import cv2
 
     rows, ious = [], []
@@ -305,7 +354,7 @@ def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], mi
         if bool(data.has_mask[i]):
             truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]
                      if min(x1 - x0, y1 - y0) >= min_box_px]
-            found = match_boxes(truth, boxes_from_mask(r["mask"]))
+            found = match_boxes(truth, boxes_from_probabilities(r["mask_probs"]))
             ious += found
             row["box_iou"] = float(np.mean(found)) if found else None
         rows.append(row)
