@@ -21,6 +21,7 @@ from fields.field import Background
 from fields.kplanes import KPlanesConfig, KPlanesField, KPlanesFieldConfig
 from fields.model import SamplerConfig, make_sampler
 from fields.rendering import composite, distortion_loss, expected_depth, opacity, weights_from_density
+from fields.samplers import sample_points
 
 KINDS = ("kplanes", "kplanes-ext")
 
@@ -110,9 +111,7 @@ class DynamicModel(nn.Module):
         edges = self.sampler.edges(origins, dirs, f.lo, f.hi, train=train, generator=generator)
         r, s1 = edges.shape
         s = s1 - 1
-        mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
-        deltas = edges[:, 1:] - edges[:, :-1]
-        pts = (origins[:, None, :] + mid[..., None] * dirs[:, None, :]).reshape(-1, 3)
+        mid, deltas, pts = sample_points(origins, dirs, edges)
         t_rep = times01.reshape(-1, 1).expand(r, s).reshape(-1)
         i_rep = None if image_idx is None else image_idx[:, None].expand(r, s).reshape(-1)
         g_rep = None

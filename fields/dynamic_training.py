@@ -34,7 +34,7 @@ from fields.evaluation import MaskBox, boxes_from_mask, match_boxes, psnr, ssim
 from fields.kplanes import cosine_separation
 from fields.model import SamplerConfig
 from fields.scene import SceneBounds, scene_bounds
-from fields.training import configure_threads, device
+from fields.training import configure_threads, device, schedule_progress
 
 log = logging.getLogger(__name__)
 
@@ -194,10 +194,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     ext = model.extended
 
     def progress() -> float:
-        p = step / max(cfg.iters, 1)
-        if cfg.budget_s:
-            p = max(p, train_s / cfg.budget_s)
-        return min(p, 1.0)
+        return schedule_progress(step, cfg.iters, train_s, cfg.budget_s)
 
     last_log = last_ckpt = 0.0
     interactive = sys.stderr.isatty()

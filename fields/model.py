@@ -14,7 +14,7 @@ from torch import nn
 
 from fields.field import Background, FieldConfig, StaticField
 from fields.rendering import composite, distortion_loss, expected_depth, opacity, weights_from_density
-from fields.samplers import OccupancySampler, StratifiedSampler, ray_box
+from fields.samplers import OccupancySampler, StratifiedSampler, ray_box, sample_points
 
 
 @dataclass
@@ -125,9 +125,7 @@ class StaticModel(nn.Module):
         edges = self.sampler.edges(origins, dirs, f.lo, f.hi, train=train, generator=generator)
         r, s1 = edges.shape
         s = s1 - 1
-        mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
-        deltas = edges[:, 1:] - edges[:, :-1]
-        pts = (origins[:, None, :] + mid[..., None] * dirs[:, None, :]).reshape(-1, 3)
+        mid, deltas, pts = sample_points(origins, dirs, edges)
         if fast and self.sampler_config.skip_threshold > 0:
             if self.skip_grid is None:
                 self.build_skip_grid()

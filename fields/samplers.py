@@ -141,3 +141,14 @@ class OccupancySampler:
         cell = float(((hi - lo) / torch.tensor(self.grid_shape, device=lo.device, dtype=lo.dtype)).min())
         w = weights_from_density(sig.clamp_max(1.0 / cell), coarse[:, 1:] - coarse[:, :-1])
         return sample_pdf(coarse, w, self.n_samples + 1, train, generator)
+
+
+def sample_points(origins, dirs, edges):
+    """Midpoints of the intervals ``edges`` (R,S+1, metres along unit ``dirs``) as 3-D points.
+
+    Returns (mid (R,S), deltas (R,S), points (R*S,3)) in the frame of ``origins``/``dirs``.
+    """
+    mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
+    deltas = edges[:, 1:] - edges[:, :-1]
+    pts = (origins[:, None, :] + mid[..., None] * dirs[:, None, :]).reshape(-1, 3)
+    return mid, deltas, pts

@@ -182,6 +182,14 @@ def load_checkpoint(path: str | Path, map_location=None) -> tuple[StaticModel, d
     return model.to(map_location or device()).eval(), ck
 
 
+def schedule_progress(step: int, iters: int, train_s: float, budget_s: float | None) -> float:
+    """Fraction of training done, 0..1: by steps, or by seconds when a budget is set (whichever is further)."""
+    p = step / max(iters, 1)
+    if budget_s:
+        p = max(p, train_s / budget_s)
+    return min(p, 1.0)
+
+
 def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: Path | None = None,
         resume: bool = False, on_eval: Callable | None = None, eval_at_s: list[float] | None = None,
         eval_at_iters: list[int] | None = None) -> FitResult:
@@ -241,10 +249,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     evals_i = sorted(eval_at_iters or [])
 
     def progress() -> float:
-        p = step / max(cfg.iters, 1)
-        if cfg.budget_s:
-            p = max(p, train_s / cfg.budget_s)
-        return min(p, 1.0)
+        return schedule_progress(step, cfg.iters, train_s, cfg.budget_s)
 
     last_log = last_ckpt = 0.0
     interactive = sys.stderr.isatty()
