@@ -132,6 +132,13 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
             continue
         end = pos + 8 + flen
         if end > n:
+            # Either the file ends mid-record or junk here only looks like an over-long frame:
+            # a readable record further on means the latter, so skip to it instead of stopping.
+            nxt = _resync(data, pos + 1)
+            if nxt < n:
+                res.bytes_skipped += nxt - pos
+                pos = nxt
+                continue
             res.truncated_tail = True
             res.problems.append(f"{name}: truncated last record ({n - pos} of {8 + flen} bytes at offset {pos})")
             break
@@ -140,7 +147,8 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
             msg = mav.decode(bytearray(raw))
         except m.MAVError as exc:
             text = str(exc)
-            if "unknown MAVLink message ID" in text or "Unknown MAVLink message ID" in text:
+            if ("unknown MAVLink message ID" in text or "Unknown MAVLink message ID" in text) and (
+                    _unknown_frame_is_whole(data, pos, end)):
                 msgid = raw[5] if raw[0] == MAGIC_V1 else int.from_bytes(raw[7:10], "little")
                 res.unknown_ids[msgid] += 1
                 pos = end
@@ -158,7 +166,7 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
             continue
         typ = msg.get_type()
         if typ.startswith("UNKNOWN_"):  # a message this dialect does not define (its CRC cannot be checked)
-            if end == n or _plausible_ts(buf, end):
+            if _unknown_frame_is_whole(data, pos, end):
                 res.unknown_ids[int(typ[8:])] += 1
                 pos = end
             else:  # no record follows: this was garbage that looked like a frame
@@ -180,6 +188,16 @@ def parse_tlog_bytes(data: bytes, name: str = "tlog") -> TlogReadResult:
         ids = ", ".join(f"{k}x{v}" for k, v in sorted(res.unknown_ids.items()))
         res.problems.append(f"{name}: messages of unknown type skipped (id x count: {ids})")
     return res
+
+
+def _unknown_frame_is_whole(b: bytes, pos: int, end: int) -> bool:
+    """Whether the record at ``pos`` whose frame has an unknown id (CRC not checkable) and ends at ``end`` is real.
+
+    Real when a record (or the end of the file) follows it and no record starts inside it; junk that
+    happens to read as a long frame swallows the records it covers, so those make it garbage.
+    """
+    followed = end == len(b) or _plausible_ts(b, end)
+    return followed and _resync(b, pos + 1) >= end
 
 
 def _resync(b: bytes, start: int) -> int:
