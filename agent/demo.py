@@ -62,9 +62,9 @@ def register(subparsers) -> None:
 def demo_base(choice: str, quick: bool) -> str | None:
     """The base detector for the demo's fine-tuning (None: from scratch), training it for the full demo."""
     from agent.replay import resolve_base
-    from export.pretrain import PretrainConfig, default_base_dir, pretrain_base
+    from export.pretrain import PretrainConfig, default_base_dir, find_base, pretrain_base
 
-    if choice.lower() == "auto" and not quick and resolve_base("auto") is None:
+    if choice.lower() == "auto" and not quick and find_base(None) is None:
         log.info("no cached base detector: training it first (%s; about an hour on 2 cores, once)",
                  default_base_dir())
         pretrain_base(PretrainConfig())
