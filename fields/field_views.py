@@ -1,9 +1,11 @@
-"""A fitted static field as a view renderer for synthesis: RGB plus per-pixel class probabilities.
+"""Fitted fields as view renderers for synthesis: RGB plus per-pixel class probabilities.
 
 Implements the ``render_view(camera, cam_from_world, t_unix_us)`` interface of
 :mod:`fields.synthesis`: rays through every pixel centre, rendered in chunks without gradients;
 novel views use the mean appearance embedding. The mask is the volume-rendered class distribution
-(channel 0 background), so its blobs are soft at the edges, as the box rules expect.
+(channel 0 background), so its blobs are soft at the edges, as the box rules expect. A static field
+ignores the time; a dynamic (K-Planes) field renders at the pose's capture time ``t_unix_us`` (unix
+µs; None: the flight's first frame).
 """
 
 from __future__ import annotations
@@ -15,10 +17,15 @@ from telemetry.camera import Camera
 
 
 class FieldViewRenderer:
+    """A static field (:class:`fields.model.StaticModel`): the time is ignored."""
+
     def __init__(self, model, n_classes: int, chunk: int = 4096):
         self.model = model.eval()
         self.n_classes = n_classes
         self.chunk = chunk
+
+    def _render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, t_unix_us: int | None) -> dict:
+        return self.model.render_rays(origins, dirs, None, train=False, with_mask=True)
 
     @torch.no_grad()
     def render_view(self, camera: Camera, cam_from_world: np.ndarray, t_unix_us: int | None = None):
@@ -29,8 +36,7 @@ class FieldViewRenderer:
         d_t = torch.from_numpy(d.astype(np.float32)).to(dev)
         rgb, probs = [], []
         for a in range(0, d_t.shape[0], self.chunk):
-            res = self.model.render_rays(o_t[a:a + self.chunk], d_t[a:a + self.chunk], None, train=False,
-                                         with_mask=True)
+            res = self._render_rays(o_t[a:a + self.chunk], d_t[a:a + self.chunk], t_unix_us)
             rgb.append(res["rgb"].float().cpu())
             probs.append(res["mask_probs"].float().cpu())
         h, w = camera.height, camera.width
@@ -39,3 +45,11 @@ class FieldViewRenderer:
         if prob.shape[-1] != self.n_classes + 1:
             raise ValueError(f"field has {prob.shape[-1] - 1} mask classes, the flight {self.n_classes}")
         return rgb_u8, prob
+
+
+class DynamicViewRenderer(FieldViewRenderer):
+    """A dynamic field (:class:`fields.dynamic_model.DynamicModel`) rendered at the pose's time."""
+
+    def _render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, t_unix_us: int | None) -> dict:
+        times01 = torch.full((origins.shape[0],), self.model.time01(t_unix_us), device=origins.device)
+        return self.model.render_rays(origins, dirs, times01, train=False, with_mask=True)

@@ -1,7 +1,10 @@
 """``uavsim synth FLIGHT``: novel views of a fitted flight → labelled synthetic set → Real/Synthetic/R+S.
 
-Reads ``derived/poses.json`` and the fitted field ``derived/fields/static.pt``; writes
-``derived/synth/`` (see :mod:`fields.synthesis`) and ``derived/datasets/{real,synthetic,r+s}/``.
+Reads ``derived/poses.json`` and the fitted field: ``derived/fields/static.pt`` (static scene: new
+altitudes, pitches and orbit radii inside the observed region) or, when only ``dynamic.pt`` is there,
+the K-Planes field (dynamic scene, the paper's: N points on the real trajectory, each rendered at t
+and t ± Δt with Δt one frame interval). Writes ``derived/synth/`` (see :mod:`fields.synthesis`) and
+``derived/datasets/{real,synthetic,r+s}/``.
 Real labels come from the flight's ``labels/`` (self-labelling with a detector happens before,
 in the agent's processing step, when a flight has none).
 """
@@ -16,27 +19,56 @@ log = logging.getLogger(__name__)
 
 def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0, 40.0, 45.0, 50.0),
                       count: int = 0, seed: int = 0, max_outside_fraction: float = 0.1) -> dict:
-    """Render ``count`` novel views (0: as many as the real training frames) and build the datasets."""
+    """Render ``count`` novel views (0: as many as the real training frames) and build the datasets.
+
+    ``altitudes_m`` and ``max_outside_fraction`` apply to static scenes only; a dynamic scene renders
+    ceil(count / 3) trajectory points × (t − Δt, t, t + Δt).
+    """
     from export.paper_datasets import build_paper_datasets, labelled_samples, read_class_names
-    from fields.field_views import FieldViewRenderer
-    from fields.novel_poses import NovelPoseOptions, static_novel_poses
     from fields.synthesis import synthesize
-    from fields.training import load_checkpoint
     from telemetry.posesfile import PosesFile
 
     flight = Path(flight)
     derived = flight / "derived"
-    checkpoint = derived / "fields" / "static.pt"
-    if not checkpoint.is_file():
-        raise FileNotFoundError(f"{checkpoint}: no fitted field (run `uavsim fit {flight}` first)")
+    fields_dir = derived / "fields"
+    if not (fields_dir / "static.pt").is_file() and not (fields_dir / "dynamic.pt").is_file():
+        raise FileNotFoundError(f"{fields_dir}: no fitted field, static.pt or dynamic.pt "
+                                f"(run `uavsim fit {flight}` first)")
     poses = PosesFile.load(derived / "poses.json")
     if not (flight / "labels").is_dir():
         raise FileNotFoundError(f"{flight}/labels: the real frames need labels (human or self-labelled)")
     names = read_class_names(flight / "classes.txt")
-    model, _ = load_checkpoint(checkpoint)
-    renderer = FieldViewRenderer(model, n_classes=len(names))
     real = labelled_samples(flight / "frames", flight / "labels")
     count = count or max(1, len(real) - len(real) // 5)
+    if (fields_dir / "static.pt").is_file():
+        renderer, kept_entries, dropped = _static_views(fields_dir / "static.pt", poses, names, altitudes_m, count,
+                                                        seed, max_outside_fraction)
+    else:
+        renderer, kept_entries, dropped = _dynamic_views(fields_dir / "dynamic.pt", poses, names, count)
+
+    def progress(i, n):
+        if i % 10 == 0 or i == n:
+            log.info("synthesised %d/%d views", i, n)
+
+    report = synthesize(renderer, poses.camera, poses.origin, kept_entries, derived / "synth",
+                        names, dropped=dropped, progress=progress)
+    synthetic = labelled_samples(derived / "synth" / "images", derived / "synth" / "labels")
+    sets = build_paper_datasets(real, synthetic, derived / "datasets", names, seed=seed)
+    return {"images": report.images, "boxes": report.boxes, "boxes_per_class": report.boxes_per_class,
+            "empty_images": report.empty_images, "dropped_poses": len(dropped),
+            "images_per_minute": round(report.images_per_minute, 2),
+            "datasets": {k: str(v) for k, v in sets.items()}}
+
+
+def _static_views(checkpoint: Path, poses, names: list[str], altitudes_m, count: int, seed: int,
+                  max_outside_fraction: float):
+    """Renderer, kept novel pose entries and dropped-pose reasons for a static field."""
+    from fields.field_views import FieldViewRenderer
+    from fields.novel_poses import NovelPoseOptions, static_novel_poses
+    from fields.training import load_checkpoint
+
+    model, _ = load_checkpoint(checkpoint)
+    renderer = FieldViewRenderer(model, n_classes=len(names))
     novel = static_novel_poses(poses.camera, [e.cam_from_world for e in poses.posed()],
                                NovelPoseOptions(altitudes_m=tuple(altitudes_m), count=count, seed=seed,
                                                 max_outside_fraction=max_outside_fraction),
@@ -47,19 +79,29 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     if not kept:
         raise ValueError("no novel pose stays inside the region the real frames observed; lower the altitudes "
                          "or raise the outside-fraction limit")
+    return renderer, [p.entry() for p in kept], dropped
 
-    def progress(i, n):
-        if i % 10 == 0 or i == n:
-            log.info("synthesised %d/%d views", i, n)
 
-    report = synthesize(renderer, poses.camera, poses.origin, [p.entry() for p in kept], derived / "synth",
-                        names, dropped=dropped, progress=progress)
-    synthetic = labelled_samples(derived / "synth" / "images", derived / "synth" / "labels")
-    sets = build_paper_datasets(real, synthetic, derived / "datasets", names, seed=seed)
-    return {"images": report.images, "boxes": report.boxes, "boxes_per_class": report.boxes_per_class,
-            "empty_images": report.empty_images, "dropped_poses": len(dropped),
-            "images_per_minute": round(report.images_per_minute, 2),
-            "datasets": {k: str(v) for k, v in sets.items()}}
+def _dynamic_views(checkpoint: Path, poses, names: list[str], count: int):
+    """Renderer and 3N trajectory entries (t − Δt, t, t + Δt; Δt = median frame interval) for a K-Planes field."""
+    import numpy as np
+
+    from fields.dynamic_training import load_dynamic_checkpoint
+    from fields.field_views import DynamicViewRenderer
+    from fields.novel_poses import dynamic_novel_poses
+
+    model, _ = load_dynamic_checkpoint(checkpoint)
+    renderer = DynamicViewRenderer(model, n_classes=len(names))
+    times = np.sort([e.t_unix_us for e in poses.posed() if e.t_unix_us is not None])
+    steps = np.diff(times)
+    steps = steps[steps > 0]
+    if steps.size == 0:
+        raise ValueError("a dynamic field needs posed frames with at least two distinct capture times")
+    frame_rate_hz = 1e6 / float(np.median(steps))
+    entries = dynamic_novel_poses(poses.posed(), n_points=-(-count // 3), frame_rate_hz=frame_rate_hz)
+    log.info("dynamic synthesis: %d trajectory points x 3 times (dt %.3f s)", len(entries) // 3,
+             1.0 / frame_rate_hz)
+    return renderer, entries, []
 
 
 def register(subparsers) -> None:
