@@ -91,15 +91,15 @@ def stage_synth(flight: Path, opts: ReplayOptions) -> dict:
 
 def stage_train(flight: Path, opts: ReplayOptions, name: str) -> dict:
     from export.onnx_export import export_onnx
-    from export.train import TrainConfig, load_checkpoint, train
+    from export.train import fine_tune_config, load_checkpoint, train
 
     data = _derived(flight) / "datasets" / name / "data.yaml"
     if not data.is_file():
         raise FileNotFoundError(f"{data}: dataset missing (run the synth stage)")
     out = _derived(flight) / "detector" / name
-    cfg = TrainConfig(data=str(data), out=str(out), epochs=opts.epochs, batch=opts.batch, imgsz=opts.imgsz,
-                      seed=opts.seed, threads=opts.threads, max_time_s=opts.train_budget_s,
-                      weights=opts.base_weights)
+    cfg = fine_tune_config(data=str(data), out=str(out), epochs=opts.epochs, batch=opts.batch, imgsz=opts.imgsz,
+                           seed=opts.seed, threads=opts.threads, max_time_s=opts.train_budget_s,
+                           weights=opts.base_weights)
     metrics = train(cfg)
     best = out / "best.pt"
     model, meta = load_checkpoint(best)

@@ -67,6 +67,18 @@ class TrainConfig:
     max_time_s: float | None = None  #: stop after the epoch that crosses this wall-clock budget
 
 
+def fine_tune_config(**fields) -> TrainConfig:
+    """A :class:`TrainConfig` for fine-tuning on one flight's few dozen images (replay, demo, agent).
+
+    The defaults suit thousands of images. On 30-60 images (3-6 batches an epoch) accumulating to the
+    nominal batch of 64 leaves one optimizer step per epoch, and a warmup of at least 100 iterations
+    outlasts the whole run (20 epochs x 5 batches), so the weights barely leave the base. Here the
+    nominal batch is the batch (a step per batch) and the warmup one epoch. Explicit ``fields`` win.
+    """
+    batch = fields.get("batch", TrainConfig.batch)
+    return TrainConfig(**{"nbs": batch, "warmup_epochs": 1.0, "warmup_min_iters": 0, **fields})
+
+
 class ModelEMA:
     """Exponential moving average of the model weights (BN buffers included)."""
 
@@ -205,7 +217,7 @@ def train(cfg: TrainConfig) -> dict:
     loss_fn = DetectionLoss(model)
     ema = ModelEMA(model, cfg.ema_decay, cfg.ema_tau)
     nw = max(round(cfg.warmup_epochs * nb), cfg.warmup_min_iters)
-    history, best_fit, it, last_step = [], -1.0, 0, -1
+    history, best_fit, it, last_step, opt_steps = [], -1.0, 0, -1, 0
     progress = _Progress()
     rng = np.random.default_rng(cfg.seed)
     log.info("training YOLOv8%s on %d images (%d val), %d epochs x %d batches of %d at %d px on %s",
@@ -242,6 +254,7 @@ def train(cfg: TrainConfig) -> dict:
                 opt.zero_grad(set_to_none=True)
                 ema.update(model)
                 last_step = it
+                opt_steps += 1
             it += 1
             mean_items = (mean_items * bi + items.cpu()) / (bi + 1)
             progress.update(f"epoch {epoch + 1}/{cfg.epochs} batch {bi + 1}/{nb} box {mean_items[0]:.3f} "
@@ -256,7 +269,7 @@ def train(cfg: TrainConfig) -> dict:
         row = {"epoch": epoch + 1, "box": float(mean_items[0]), "cls": float(mean_items[1]),
                "dfl": float(mean_items[2]), "map50": res.map50, "map50_95": res.map50_95,
                "train_s": train_s, "elapsed_s": time.perf_counter() - t_start,
-               "lr": opt.param_groups[1]["lr"]}
+               "lr": opt.param_groups[1]["lr"], "optimizer_steps": opt_steps}
         history.append(row)
         metrics = {"map50": res.map50, "map50_95": res.map50_95, "per_class": res.per_class}
         save_checkpoint(out / "last.pt", ema.ema, cfg.imgsz, epoch + 1, metrics)
@@ -273,4 +286,4 @@ def train(cfg: TrainConfig) -> dict:
     best = max(history, key=lambda r: 0.1 * r["map50"] + 0.9 * r["map50_95"])
     return {"best": str(out / "best.pt"), "last": str(out / "last.pt"), "best_epoch": best["epoch"],
             "map50": best["map50"], "map50_95": best["map50_95"], "history": history,
-            "seconds": time.perf_counter() - t_start, "optimizer": opt_name, "lr0": lr0}
+            "seconds": time.perf_counter() - t_start, "optimizer": opt_name, "lr0": lr0, "optimizer_steps": opt_steps}

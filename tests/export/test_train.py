@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from export.train import TrainConfig, build_optimizer, load_checkpoint, train
+from export.train import TrainConfig, build_optimizer, fine_tune_config, load_checkpoint, train
 from export.yolo import YOLOv8
 
 REPO = Path(__file__).resolve().parents[2]
@@ -28,6 +28,17 @@ def test_tiny_training_writes_checkpoints_and_history(tiny_data, tmp_path):
     again = train(TrainConfig(data=str(tiny_data), out=str(tmp_path / "ft"), weights=summary["last"], epochs=1,
                               batch=6, imgsz=64, threads=1))
     assert Path(again["best"]).is_file()
+
+
+def test_fine_tuning_a_flight_steps_every_batch(tiny_data, tmp_path):
+    """A flight's few images in a few batches: the default nominal batch of 64 gives one optimizer step
+    per epoch (the weights barely move from the base); the fine-tuning config steps every batch."""
+    common = dict(data=str(tiny_data), epochs=2, batch=2, imgsz=64, close_mosaic=0, threads=1)
+    default = train(TrainConfig(out=str(tmp_path / "default"), **common))
+    tuned = train(fine_tune_config(out=str(tmp_path / "tuned"), **common))
+    assert default["optimizer_steps"] == 2  # 6 training images in 3 batches of 2, one step an epoch
+    assert tuned["optimizer_steps"] == 2 * 3
+    assert fine_tune_config(batch=8, nbs=64).nbs == 64  # explicit fields win
 
 
 def test_auto_optimizer_follows_the_recipe():
