@@ -123,8 +123,10 @@ def write_report(flight: Path, summaries: dict, stage_seconds: dict, total_s: fl
         t = summaries.get(f"train-{name}")
         if t:
             m = t.get("metrics", {})
+            steps = m.get("optimizer_steps")
             lines.append(f"- {name}: best epoch {m.get('best_epoch')} (val mAP50 {_fmt(m.get('map50'))}), "
-                         f"trained {_fmt(m.get('seconds'), 0)} s")
+                         f"trained {_fmt(m.get('seconds'), 0)} s"
+                         + (f", {steps} optimizer steps" if steps is not None else ""))
     out = derived / "report.md"
     out.write_text("\n".join(lines) + "\n")
     log.info("report written to %s", out)
