@@ -102,12 +102,13 @@ def run_render(args) -> int:
     import cv2
     import numpy as np
 
-    from fields.dynamic_cli import load_renderer
-    from fields.evaluation import boxes_from_mask
+    from fields.field_views import load_view_renderer
+    from fields.mask_boxes import BoxRules, boxes_from_probabilities
     from telemetry.posesfile import PosesFile
 
     poses = PosesFile.load(args.poses)
-    render = load_renderer(args.checkpoint, args.flight)
+    renderer = load_view_renderer(args.checkpoint, args.flight)
+    rules = BoxRules(min_area_px=args.min_box_px)  # the synthesis rules (fields.synthesis)
     camera = poses.camera
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -119,13 +120,11 @@ def run_render(args) -> int:
             log.warning("pose %d has no cam_from_world (%s): skipped", i, entry.reason)
             continue
         name = Path(entry.frame).stem if entry.frame else f"pose_{i:05d}"
-        r = render(camera, entry, args.masks)
-        rgb = (np.clip(r["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
+        rgb, prob = renderer.render_view(camera, entry.cam_from_world, entry.t_unix_us, with_mask=args.masks)
         cv2.imwrite(str(out / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if args.masks:
-            mask = r["mask"].astype(np.uint8)
-            cv2.imwrite(str(out / f"{name}_mask.png"), mask)
-            boxes = boxes_from_mask(mask, args.min_box_px)
+            cv2.imwrite(str(out / f"{name}_mask.png"), np.argmax(prob, axis=-1).astype(np.uint8))
+            boxes = boxes_from_probabilities(prob, rules)
             n_boxes += len(boxes)
             (out / "labels" / f"{name}.txt").write_text(
                 "".join(b.yolo(camera.width, camera.height) + "\n" for b in boxes))

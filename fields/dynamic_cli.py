@@ -80,26 +80,3 @@ def run(args, out: Path) -> int | None:
         msg += f", held-out PSNR {heldout['psnr']:.2f} dB SSIM {heldout['ssim']:.3f}"
     print(msg)
     return 0
-
-
-def load_renderer(checkpoint: Path | None, flight: Path):
-    """``render(camera, pose_entry, with_mask) -> dict`` for a static or dynamic checkpoint. Default:
-    ``FLIGHT/derived/fields/static.pt``, else ``dynamic.pt``; a dynamic field renders each pose at its
-    ``t_unix_us`` (null: the flight's first frame time, DESIGN.md §3)."""
-    import torch
-
-    from fields.dynamic_training import FORMAT, load_dynamic_checkpoint
-    from fields.training import load_checkpoint
-
-    if checkpoint is None:
-        folder = Path(flight) / "derived" / "fields"
-        checkpoint = folder / "static.pt"
-        if not checkpoint.is_file() and (folder / "dynamic.pt").is_file():
-            checkpoint = folder / "dynamic.pt"
-    if Path(checkpoint).is_file() and torch.load(checkpoint, map_location="cpu", weights_only=False).get(
-            "format") == FORMAT:
-        dyn, _ = load_dynamic_checkpoint(checkpoint)
-        return lambda camera, entry, with_mask: dyn.render_image(camera, entry.cam_from_world,
-                                                                 dyn.time01(entry.t_unix_us), with_mask=with_mask)
-    model, _ = load_checkpoint(checkpoint)
-    return lambda camera, entry, with_mask: model.render_image(camera, entry.cam_from_world, with_mask=with_mask)

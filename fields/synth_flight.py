@@ -25,6 +25,7 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     ceil(count / 3) trajectory points × (t − Δt, t, t + Δt).
     """
     from export.paper_datasets import build_paper_datasets, labelled_samples, read_class_names
+    from fields.field_views import DynamicViewRenderer, load_view_renderer
     from fields.synthesis import synthesize
     from telemetry.posesfile import PosesFile
 
@@ -40,11 +41,12 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     names = read_class_names(flight / "classes.txt")
     real = labelled_samples(flight / "frames", flight / "labels")
     count = count or max(1, len(real) - len(real) // 5)
-    if (fields_dir / "static.pt").is_file():
-        renderer, kept_entries, dropped = _static_views(fields_dir / "static.pt", poses, names, altitudes_m, count,
-                                                        seed, max_outside_fraction)
+    renderer = load_view_renderer(None, flight, n_classes=len(names))  # static.pt, else dynamic.pt
+    if isinstance(renderer, DynamicViewRenderer):
+        kept_entries, dropped = _dynamic_poses(poses, count), []
     else:
-        renderer, kept_entries, dropped = _dynamic_views(fields_dir / "dynamic.pt", poses, names, count)
+        kept_entries, dropped = _static_poses(renderer.model.background.ground_z, poses, altitudes_m, count, seed,
+                                              max_outside_fraction)
 
     def progress(i, n):
         if i % 10 == 0 or i == n:
@@ -60,38 +62,29 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
             "datasets": {k: str(v) for k, v in sets.items()}}
 
 
-def _static_views(checkpoint: Path, poses, names: list[str], altitudes_m, count: int, seed: int,
-                  max_outside_fraction: float):
-    """Renderer, kept novel pose entries and dropped-pose reasons for a static field."""
-    from fields.field_views import FieldViewRenderer
+def _static_poses(ground_z: float, poses, altitudes_m, count: int, seed: int, max_outside_fraction: float):
+    """Kept novel pose entries and dropped-pose reasons for a static scene (ground at ``ground_z``, ENU m)."""
     from fields.novel_poses import NovelPoseOptions, static_novel_poses
-    from fields.training import load_checkpoint
 
-    model, _ = load_checkpoint(checkpoint)
-    renderer = FieldViewRenderer(model, n_classes=len(names))
     novel = static_novel_poses(poses.camera, [e.cam_from_world for e in poses.posed()],
                                NovelPoseOptions(altitudes_m=tuple(altitudes_m), count=count, seed=seed,
                                                 max_outside_fraction=max_outside_fraction),
-                               ground_z=model.background.ground_z)
+                               ground_z=ground_z)
     kept = [p for p in novel if p.kept]
     dropped = [{"altitude_m": p.altitude_m, "pitch_deg": round(p.pitch_deg, 1), "reason": p.reason}
                for p in novel if not p.kept]
     if not kept:
         raise ValueError("no novel pose stays inside the region the real frames observed; lower the altitudes "
                          "or raise the outside-fraction limit")
-    return renderer, [p.entry() for p in kept], dropped
+    return [p.entry() for p in kept], dropped
 
 
-def _dynamic_views(checkpoint: Path, poses, names: list[str], count: int):
-    """Renderer and 3N trajectory entries (t − Δt, t, t + Δt; Δt = median frame interval) for a K-Planes field."""
+def _dynamic_poses(poses, count: int):
+    """3N trajectory entries (t − Δt, t, t + Δt; Δt = the median frame interval) for a dynamic scene."""
     import numpy as np
 
-    from fields.dynamic_training import load_dynamic_checkpoint
-    from fields.field_views import DynamicViewRenderer
     from fields.novel_poses import dynamic_novel_poses
 
-    model, _ = load_dynamic_checkpoint(checkpoint)
-    renderer = DynamicViewRenderer(model, n_classes=len(names))
     times = np.sort([e.t_unix_us for e in poses.posed() if e.t_unix_us is not None])
     steps = np.diff(times)
     steps = steps[steps > 0]
@@ -101,7 +94,7 @@ def _dynamic_views(checkpoint: Path, poses, names: list[str], count: int):
     entries = dynamic_novel_poses(poses.posed(), n_points=-(-count // 3), frame_rate_hz=frame_rate_hz)
     log.info("dynamic synthesis: %d trajectory points x 3 times (dt %.3f s)", len(entries) // 3,
              1.0 / frame_rate_hz)
-    return renderer, entries, []
+    return entries
 
 
 def register(subparsers) -> None:
