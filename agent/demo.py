@@ -88,7 +88,7 @@ def run_cli(args) -> int:
                        progress=lambda k, n: log.info("frame %d/%d", k, n) if k % 10 == 0 or k == n else None)
     else:
         log.info("%s already recorded: reusing it (delete it to record again)", flight)
-    opts = ReplayOptions(seed=args.seed, force=args.force, sfm=plan.sfm, fit_budget_s=plan.fit_budget_s,
+    opts = ReplayOptions(seed=args.seed, force=args.force, kind="static", sfm=plan.sfm, fit_budget_s=plan.fit_budget_s,
                          synth_count=plan.synth_count, epochs=plan.epochs, imgsz=plan.imgsz, batch=plan.batch,
                          train_budget_s=plan.train_budget_s, truth=str(truth_path(flight)),
                          test_images_per_altitude=plan.test_images, base_weights=base)

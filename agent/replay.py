@@ -30,6 +30,8 @@ DATASETS = ("real", "synthetic", "r+s")
 @dataclass
 class ReplayOptions:
     seed: int = 0
+    #: field kind: auto (static unless labelled people move; fields.scene_kind), static, kplanes, kplanes-ext
+    kind: str = "auto"
     force: bool = False
     sfm: bool = True
     #: field training budget, s
@@ -65,28 +67,44 @@ def stage_poses(flight: Path, opts: ReplayOptions) -> dict:
 
 
 def stage_fit(flight: Path, opts: ReplayOptions) -> dict:
+    """The scene's field: static (hash grid + mask) or, for moving people, extended K-Planes (``opts.kind``)."""
     from fields.data import load_flight
+    from fields.dynamic_cli import auto_kind, fit_dynamic_flight
     from fields.training import FitConfig, evaluate_frames, fit, write_fit_json
 
+    if opts.kind not in ("auto", "static", "kplanes", "kplanes-ext"):
+        raise ValueError(f"field kind must be auto, static, kplanes or kplanes-ext, got {opts.kind!r}")
+    out = _derived(flight) / "fields"
+    kind, choice, dd = opts.kind, None, None
+    if kind == "auto":
+        choice, dd = auto_kind(flight, out)
+        kind = "static" if choice["kind"] == "static" else "kplanes-ext"
+    if kind != "static":
+        summary = fit_dynamic_flight(flight, out, kind, dd, choice, budget_s=opts.fit_budget_s, seed=opts.seed,
+                                     threads=opts.threads)
+        return {**summary, "kind_reason": None if choice is None else choice["reason"],
+                "checkpoint": str(out / "dynamic.pt")}
     data = load_flight(flight)
     cfg = FitConfig(budget_s=opts.fit_budget_s, seed=opts.seed, threads=opts.threads)
-    out = _derived(flight) / "fields"
     out.mkdir(parents=True, exist_ok=True)
     result = fit(data, cfg, out_dir=out, flight=flight)
     _, test = data.split(cfg.holdout_every)
     heldout = evaluate_frames(result.model, data, test, out_dir=out / "heldout") if test else None
     write_fit_json(out / "fit.json", result, cfg, heldout)
-    return {"steps": result.step, "train_s": round(result.train_s, 1), "params": result.model.param_count(),
+    return {"kind": "static", "kind_reason": None if choice is None else choice["reason"],
+            "checkpoint": str(out / "static.pt"),
+            "steps": result.step, "train_s": round(result.train_s, 1), "params": result.model.param_count(),
             "mb": round(result.model.param_count() * 4 / 1e6, 2),
             "heldout_psnr": None if not heldout else heldout.get("psnr"),
             "heldout_ssim": None if not heldout else heldout.get("ssim"),
             "heldout_box_iou": None if not heldout else heldout.get("box_iou_mean")}
 
 
-def stage_synth(flight: Path, opts: ReplayOptions) -> dict:
+def stage_synth(flight: Path, opts: ReplayOptions, checkpoint: str | None = None) -> dict:
+    """Novel views of the field the fit stage made (``checkpoint``; None: static.pt, else dynamic.pt)."""
     from fields.synth_flight import synthesize_flight
 
-    return synthesize_flight(flight, opts.synth_altitudes_m, opts.synth_count, opts.seed)
+    return synthesize_flight(flight, opts.synth_altitudes_m, opts.synth_count, opts.seed, checkpoint=checkpoint)
 
 
 def stage_train(flight: Path, opts: ReplayOptions, name: str) -> dict:
@@ -162,8 +180,8 @@ def replay(flight: str | Path, opts: ReplayOptions) -> dict:
     t0 = time.perf_counter()
     runner = StageRunner(flight, seed=opts.seed, force=opts.force)
     runner.run("poses", lambda: stage_poses(flight, opts))
-    runner.run("fit", lambda: stage_fit(flight, opts))
-    runner.run("synth", lambda: stage_synth(flight, opts))
+    fitted = runner.run("fit", lambda: stage_fit(flight, opts))
+    runner.run("synth", lambda: stage_synth(flight, opts, fitted.get("checkpoint")))
     for name in DATASETS:
         if (flight / "derived" / "datasets" / name / "data.yaml").is_file():
             runner.run(f"train-{name}", lambda name=name: stage_train(flight, opts, name))
@@ -183,6 +201,8 @@ def register(subparsers) -> None:
     p.add_argument("--force", action="store_true", help="rerun finished stages")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-sfm", action="store_true", help="telemetry poses only")
+    p.add_argument("--kind", default="auto", choices=["auto", "static", "kplanes", "kplanes-ext"],
+                   help="field: auto = static unless labelled people move (reason in derived/fields/kind.json)")
     p.add_argument("--fit-budget-s", type=float, default=300.0)
     p.add_argument("--synth-count", type=int, default=0, help="novel views (0: match the real training set)")
     p.add_argument("--altitudes", default="35,40,45,50", help="novel-view altitudes above ground, m")
@@ -222,7 +242,8 @@ def resolve_base(choice: str | None) -> str | None:
 
 
 def run_cli(args) -> int:
-    opts = ReplayOptions(seed=args.seed, force=args.force, sfm=not args.no_sfm, fit_budget_s=args.fit_budget_s,
+    opts = ReplayOptions(seed=args.seed, force=args.force, kind=args.kind, sfm=not args.no_sfm,
+                         fit_budget_s=args.fit_budget_s,
                          synth_count=args.synth_count, synth_altitudes_m=parse_altitudes(args.altitudes),
                          epochs=args.epochs, batch=args.batch, imgsz=args.imgsz,
                          train_budget_s=args.train_budget_s, truth=args.truth, threads=args.threads,

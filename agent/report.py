@@ -89,8 +89,13 @@ def write_report(flight: Path, summaries: dict, stage_seconds: dict, total_s: fl
               f"- SfM: {p.get('sfm', 'on')}; refined {_fmt(p.get('sfm_refined'))} frames, mean reprojection "
               f"{_fmt(p.get('mean_reprojection_px'))} px, {p.get('points', '–')} sparse points"]
     f = summaries.get("fit", {})
-    lines += ["", "## Radiance field (static, with mask head)", "",
-              f"- held-out PSNR {_fmt(f.get('heldout_psnr'), 2)} dB, SSIM {_fmt(f.get('heldout_ssim'))}, "
+    kind = f.get("kind", "static")
+    title = {"static": "static, with mask head", "kplanes": "dynamic: K-Planes",
+             "kplanes-ext": "dynamic: extended K-Planes, with mask channel"}.get(kind, kind)
+    lines += ["", f"## Radiance field ({title})", ""]
+    if f.get("kind_reason"):
+        lines.append(f"- kind chosen from the flight: {f['kind_reason']}")
+    lines += [f"- held-out PSNR {_fmt(f.get('heldout_psnr'), 2)} dB, SSIM {_fmt(f.get('heldout_ssim'))}, "
               f"mask box IoU {_fmt(f.get('heldout_box_iou'))}",
               f"- {f.get('steps')} steps in {_fmt(f.get('train_s'), 0)} s; {f.get('params')} parameters "
               f"({f.get('mb')} MB); details in `derived/fields/fit.json`"]

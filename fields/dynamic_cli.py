@@ -31,52 +31,77 @@ def decide_kind(flight: Path, dd) -> dict:
     return {**choice.to_json(), "ground_z": ground_z}
 
 
-def run(args, out: Path) -> int | None:
-    """Handle ``--kind auto|kplanes|kplanes-ext``; returns None when auto chooses the static fit."""
-    import torch
-
+def auto_kind(flight: Path, out: Path):
+    """The ``--kind auto`` choice (a JSON dict with ``kind`` static|dynamic and ``reason``), written to
+    ``out/kind.json`` and logged, and the timed flight (None when frames lack capture times: static)."""
     from fields.data import FlightDataError
     from fields.dynamic_data import load_dynamic_flight
-    from fields.dynamic_training import (
-        DynamicFitConfig,
-        evaluate_dynamic,
-        fit_dynamic,
-        split,
-        write_dynamic_fit_json,
-    )
 
-    kind, choice = args.kind, None
     try:
-        dd = load_dynamic_flight(args.flight)
+        dd = load_dynamic_flight(flight)
+        choice = decide_kind(flight, dd)
     except FlightDataError as exc:
-        if kind != "auto" or "capture time" not in str(exc):
+        if "capture time" not in str(exc):
             raise
         dd, choice = None, {"kind": "static", "reason": f"frames without capture times: {exc}", "evidence": {}}
-    if kind == "auto":
-        choice = choice or decide_kind(args.flight, dd)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "kind.json").write_text(json.dumps(choice, indent=1, default=float) + "\n")
-        log.info("--kind auto: %s (%s)", choice["kind"], choice["reason"])
-        print(f"--kind auto: {choice['kind']} field: {choice['reason']}")
-        if choice["kind"] == "static":
-            return None
-        kind = "kplanes-ext"
-    torch.set_flush_denormal(True)  # products of small plane features hit denormals: ~2x slower without
-    every = 2 if args.holdout_every is None else args.holdout_every
-    cfg = DynamicFitConfig(kind=kind, budget_s=args.budget_s or None, iters=args.iters, holdout_every=every,
-                           threads=args.threads, seed=args.seed)
-    if args.samples is not None:
-        cfg.n_samples = args.samples
-    if args.batch_rays is not None:
-        cfg.batch_rays = args.batch_rays
     out.mkdir(parents=True, exist_ok=True)
-    result = fit_dynamic(dd, cfg, out_dir=out, flight=args.flight, resume=args.resume)
+    (out / "kind.json").write_text(json.dumps(choice, indent=1, default=float) + "\n")
+    log.info("--kind auto: %s (%s)", choice["kind"], choice["reason"])
+    return choice, dd
+
+
+def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict | None = None,
+                       budget_s: float | None = 300.0, iters: int | None = None, holdout_every: int = 2,
+                       threads: int | None = None, seed: int = 0, samples: int | None = None,
+                       batch_rays: int | None = None, resume: bool = False) -> dict:
+    """Fit a ``kplanes`` or ``kplanes-ext`` field → ``out/dynamic.pt`` + ``fit.json`` (+ held-out previews).
+
+    Returns a summary: steps, train_s, params, mb, held-out psnr / ssim / box IoU (None without
+    held-out frames). ``dd``: the loaded timed flight (loaded here when None).
+    """
+    import torch
+
+    from fields.dynamic_data import load_dynamic_flight
+    from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split, write_dynamic_fit_json
+
+    dd = dd if dd is not None else load_dynamic_flight(flight)
+    torch.set_flush_denormal(True)  # products of small plane features hit denormals: ~2x slower without
+    cfg = DynamicFitConfig(kind=kind, budget_s=budget_s or None, holdout_every=holdout_every, threads=threads,
+                           seed=seed)
+    if iters is not None:
+        cfg.iters = iters
+    if samples is not None:
+        cfg.n_samples = samples
+    if batch_rays is not None:
+        cfg.batch_rays = batch_rays
+    out.mkdir(parents=True, exist_ok=True)
+    result = fit_dynamic(dd, cfg, out_dir=out, flight=flight, resume=resume)
     _, test = split(dd, cfg.holdout_every)
     heldout = evaluate_dynamic(result.model, dd, test, out_dir=out / "heldout") if test else None
     write_dynamic_fit_json(out / "fit.json", result, cfg, heldout, choice)
     n = result.model.param_count()
-    msg = f"{out}: {kind}, {result.step} steps in {result.train_s:.0f} s, {n} params ({n * 4 / 1e6:.1f} MB)"
-    if heldout:
-        msg += f", held-out PSNR {heldout['psnr']:.2f} dB SSIM {heldout['ssim']:.3f}"
+    return {"kind": kind, "steps": result.step, "train_s": round(result.train_s, 1), "params": n,
+            "mb": round(n * 4 / 1e6, 2), "heldout_psnr": heldout["psnr"] if heldout else None,
+            "heldout_ssim": heldout["ssim"] if heldout else None,
+            "heldout_box_iou": heldout["box_iou_mean"] if heldout else None}
+
+
+def run(args, out: Path) -> int | None:
+    """Handle ``--kind auto|kplanes|kplanes-ext``; returns None when auto chooses the static fit."""
+    kind, choice, dd = args.kind, None, None
+    if kind == "auto":
+        choice, dd = auto_kind(args.flight, out)
+        print(f"--kind auto: {choice['kind']} field: {choice['reason']}")
+        if choice["kind"] == "static":
+            return None
+        kind = "kplanes-ext"
+    every = 2 if args.holdout_every is None else args.holdout_every
+    f = fit_dynamic_flight(args.flight, out, kind, dd, choice, budget_s=args.budget_s, iters=args.iters,
+                           holdout_every=every, threads=args.threads, seed=args.seed, samples=args.samples,
+                           batch_rays=args.batch_rays, resume=args.resume)
+    msg = (f"{out}: {kind}, {f['steps']} steps in {f['train_s']:.0f} s, {f['params']} params "
+           f"({f['mb']:.1f} MB)")
+    if f["heldout_psnr"] is not None:
+        msg += f", held-out PSNR {f['heldout_psnr']:.2f} dB SSIM {f['heldout_ssim']:.3f}"
     print(msg)
     return 0

@@ -18,9 +18,11 @@ log = logging.getLogger(__name__)
 
 
 def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0, 40.0, 45.0, 50.0),
-                      count: int = 0, seed: int = 0, max_outside_fraction: float = 0.1) -> dict:
+                      count: int = 0, seed: int = 0, max_outside_fraction: float = 0.1,
+                      checkpoint: str | Path | None = None) -> dict:
     """Render ``count`` novel views (0: as many as the real training frames) and build the datasets.
 
+    ``checkpoint``: the fitted field (None: ``derived/fields/static.pt``, else ``dynamic.pt``).
     ``altitudes_m`` and ``max_outside_fraction`` apply to static scenes only; a dynamic scene renders
     ceil(count / 3) trajectory points × (t − Δt, t, t + Δt).
     """
@@ -32,7 +34,9 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     flight = Path(flight)
     derived = flight / "derived"
     fields_dir = derived / "fields"
-    if not (fields_dir / "static.pt").is_file() and not (fields_dir / "dynamic.pt").is_file():
+    if checkpoint is not None and not Path(checkpoint).is_file():
+        raise FileNotFoundError(f"{checkpoint}: no such fitted field")
+    if checkpoint is None and not (fields_dir / "static.pt").is_file() and not (fields_dir / "dynamic.pt").is_file():
         raise FileNotFoundError(f"{fields_dir}: no fitted field, static.pt or dynamic.pt "
                                 f"(run `uavsim fit {flight}` first)")
     poses = PosesFile.load(derived / "poses.json")
@@ -41,7 +45,7 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     names = read_class_names(flight / "classes.txt")
     real = labelled_samples(flight / "frames", flight / "labels")
     count = count or max(1, len(real) - len(real) // 5)
-    renderer = load_view_renderer(None, flight, n_classes=len(names))  # static.pt, else dynamic.pt
+    renderer = load_view_renderer(checkpoint, flight, n_classes=len(names))
     if isinstance(renderer, DynamicViewRenderer):
         kept_entries, dropped = _dynamic_poses(poses, count), []
     else:

@@ -64,3 +64,23 @@ def test_no_fitted_field_is_a_clear_error(tmp_path):
     (tmp_path / "derived" / "fields").mkdir(parents=True)
     with pytest.raises(FileNotFoundError, match="no fitted field"):
         synthesize_flight(tmp_path, count=3)
+
+
+def test_replay_fits_kplanes_for_walking_people_and_synthesises_from_it(fitted_dynamic_flight, tmp_path):
+    """`uavsim replay` (kind auto) on a flight whose labelled people walk: the fit stage chooses and fits
+    extended K-Planes, the synth stage renders that field at trajectory times."""
+    import shutil
+
+    from agent.replay import ReplayOptions, stage_fit, stage_synth
+
+    flight = tmp_path / "f"
+    shutil.copytree(fitted_dynamic_flight, flight)
+    shutil.rmtree(flight / "derived" / "fields")
+    opts = ReplayOptions(kind="auto", fit_budget_s=2.0, synth_count=3)
+    fitted = stage_fit(flight, opts)
+    assert fitted["kind"] == "kplanes-ext" and fitted["kind_reason"]
+    assert fitted["checkpoint"].endswith("dynamic.pt") and not (flight / "derived/fields/static.pt").exists()
+    synth = stage_synth(flight, opts, fitted["checkpoint"])
+    assert synth["images"] == 3
+    with pytest.raises(ValueError, match="field kind"):
+        stage_fit(flight, ReplayOptions(kind="nerf"))
