@@ -73,7 +73,6 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
     Returns a summary: steps, train_s, params, mb, held-out psnr / ssim / box IoU (None without
     held-out frames). ``dd``: the loaded timed flight (loaded here when None).
     """
-
     from fields.dynamic_data import load_dynamic_flight
     from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split, write_dynamic_fit_json
 
