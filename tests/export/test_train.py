@@ -38,6 +38,7 @@ def test_fine_tuning_a_flight_steps_every_batch(tiny_data, tmp_path):
     tuned = train(fine_tune_config(out=str(tmp_path / "tuned"), **common))
     assert default["optimizer_steps"] == 2  # 6 training images in 3 batches of 2, one step an epoch
     assert tuned["optimizer_steps"] == 2 * 3
+    assert tuned["lr0"] == pytest.approx(0.1 * default["lr0"])  # a tenth of the from-scratch rate
     assert fine_tune_config(batch=8, nbs=64).nbs == 64  # explicit fields win
 
 
