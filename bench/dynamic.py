@@ -31,8 +31,9 @@ def load_avg() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
-def prepare(flight: Path, frames: int, width: int, seed: int = 0) -> None:
-    """Render the flight once (cached under bench/out)."""
+def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: float = 0.05,
+            jitter_deg: float = 0.15) -> None:
+    """Render the flight once (cached under bench/out); ``jitter_*``: white per-frame pose noise."""
     if (flight / "derived" / "poses.json").is_file():
         return
     from fields.dynamic_simscene import LineSpec, PoseNoise, write_line_flight
@@ -41,8 +42,8 @@ def prepare(flight: Path, frames: int, width: int, seed: int = 0) -> None:
 
     world = make_world(seed=seed, dynamic=True)
     camera = Camera.from_fov(width, width * 3 // 4, 70.0, Mount(pitch_deg=-60.0))
-    write_line_flight(flight, world, camera, LineSpec(frames=frames, seed=seed), PoseNoise(seed=seed + 1),
-                      supersample=2)
+    noise = PoseNoise(seed=seed + 1, jitter_m=jitter_m, jitter_deg=jitter_deg)
+    write_line_flight(flight, world, camera, LineSpec(frames=frames, seed=seed), noise, supersample=2)
 
 
 def main() -> None:
@@ -52,6 +53,8 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=160)
     ap.add_argument("--kinds", default="kplanes,kplanes-ext")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: OMP_NUM_THREADS)")
+    ap.add_argument("--jitter-m", type=float, default=0.05, help="white per-frame camera-centre noise, m")
+    ap.add_argument("--jitter-deg", type=float, default=0.15, help="white per-frame attitude noise, deg")
     ap.add_argument("--flight", type=Path, default=None, help="flight folder (default bench/out/dynamic_...)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
@@ -64,9 +67,11 @@ def main() -> None:
     torch.set_flush_denormal(True)  # products of small plane features hit denormals: 2x slower without
     if args.threads:
         torch.set_num_threads(args.threads)
-    flight = args.flight or OUT_DIR / f"dynamic_flight_{args.width}px_{args.frames}f"
+    jitter = (args.jitter_m, args.jitter_deg)
+    tag = "" if jitter == (0.05, 0.15) else f"_jit{args.jitter_m:g}m{args.jitter_deg:g}deg"
+    flight = args.flight or OUT_DIR / f"dynamic_flight_{args.width}px_{args.frames}f{tag}"
     t0 = time.perf_counter()
-    prepare(flight, args.frames, args.width)
+    prepare(flight, args.frames, args.width, jitter_m=args.jitter_m, jitter_deg=args.jitter_deg)
     dd = load_dynamic_flight(flight)
     train_idx, val_idx = split(dd, 2)
     load_start = load_avg()
@@ -78,17 +83,21 @@ def main() -> None:
                                checkpoint_every_s=1e9)
         r = fit_dynamic(dd, cfg, flight=flight)
         t_e = time.perf_counter()
-        ev = evaluate_dynamic(r.model, dd, val_idx, out_dir=OUT_DIR / f"dynamic_{kind}_heldout")
+        ev = evaluate_dynamic(r.model, dd, val_idx, out_dir=OUT_DIR / f"dynamic_{kind}{tag}_heldout")
         n = r.model.param_count()
-        results[kind] = {"psnr": ev["psnr"], "ssim": ev["ssim"], "box_psnr": ev["box_psnr"],
+        results[kind] = {"psnr": ev["psnr"], "ssim": ev["ssim"], "box_psnr": ev["box_psnr"], "bg_psnr": ev["bg_psnr"],
+                         "box_fraction": ev["box_fraction"],
+                         "train_psnr_end": r.curve[-1]["train_psnr"] if r.curve else None,
                          "box_iou_mean": ev["box_iou_mean"], "steps": r.step, "train_s": round(r.train_s, 1),
                          "eval_s": round(time.perf_counter() - t_e, 1), "params": n, "mb": round(n * 4 / 1e6, 2),
                          "planes": r.model.field_config.planes.to_json(), "curve": r.curve,
                          "per_frame_psnr": [round(f["psnr"], 3) for f in ev["frames"]]}
-        print(f"{kind}: held-out PSNR {ev['psnr']:.2f} dB (boxes {ev['box_psnr'] or float('nan'):.2f}), "
+        print(f"{kind}: held-out PSNR {ev['psnr']:.2f} dB (boxes {ev['box_psnr'] or float('nan'):.2f}, background "
+              f"{ev['bg_psnr'] or float('nan'):.2f}, box pixels {100 * (ev['box_fraction'] or 0):.1f} %), "
               f"SSIM {ev['ssim']:.3f}, {r.step} steps in {r.train_s:.0f} s, {n} params; {load_avg()}", flush=True)
     payload = {"flight": str(flight), "frames": dd.n, "train_frames": len(train_idx), "val_frames": len(val_idx),
                "width": dd.data.camera.width, "height": dd.data.camera.height, "budget_s": args.budget_s,
+               "jitter_m": args.jitter_m, "jitter_deg": args.jitter_deg,
                "load_start": load_start, "load_end": load_avg(), "results": results,
                "threads": torch.get_num_threads()}
     if "kplanes" in results:

@@ -205,6 +205,20 @@ def test_fit_gradients_finite_and_checkpoint_round_trip(dynamic_flight, tmp_path
     assert np.isfinite(ev["psnr"])
 
 
+def test_heldout_psnr_splits_into_boxes_and_background(dynamic_flight):
+    """Per frame, full-frame MSE = f x box MSE + (1 - f) x background MSE, f = the box pixel fraction."""
+    dd = load_dynamic_flight(dynamic_flight)
+    frames = [i for i in range(dd.n) if 0 < float(dd.dynamic_masks()[i].float().mean()) < 1][:1]
+    assert frames, "the tiny dynamic flight should have a frame with people in it"
+    ev = evaluate_dynamic(_model(dd, "kplanes"), dd, frames)
+    row = ev["frames"][0]
+    f = row["box_fraction"]
+    assert f == pytest.approx(float(dd.dynamic_masks()[frames[0]].float().mean()))
+    mse = lambda db: 10 ** (-db / 10)  # noqa: E731
+    assert mse(row["psnr"]) == pytest.approx(f * mse(row["box_psnr"]) + (1 - f) * mse(row["bg_psnr"]), rel=1e-6)
+    assert ev["bg_psnr"] == pytest.approx(row["bg_psnr"]) and ev["box_fraction"] == pytest.approx(f)
+
+
 def test_resume_continues_the_step_count(dynamic_flight, tmp_path):
     dd = load_dynamic_flight(dynamic_flight)
     fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **TINY), out_dir=tmp_path)
@@ -243,6 +257,35 @@ def test_empty_mask_updates_only_static_planes(dynamic_flight):
     model = _model(dd, "kplanes-ext")
     stat, dyn = _plane_grads(model, 0.0, dd)
     assert stat > 0.0 and dyn == 0.0
+
+
+def test_mixed_mask_static_planes_see_only_static_rays(dynamic_flight):
+    """In one batch with both kinds of pixels, the static planes' gradient equals that of the static
+    rays' loss alone and the dynamic planes' that of the dynamic rays' loss alone."""
+    from fields.data import RayBank
+
+    dd = load_dynamic_flight(dynamic_flight)
+    model = _model(dd, "kplanes-ext")
+    torch.manual_seed(1)
+    bank = RayBank(dd.data.camera, dd.data.cam_from_world)
+    o, d = bank.rays(torch.zeros(64, dtype=torch.long), torch.randint(bank.hw, (64,)))
+    gate = (torch.arange(64) % 3 == 0).float()
+    enc = model.field.encoding
+
+    def grads(weight):
+        model.zero_grad()
+        res = model.render_rays(o, d, torch.full((64,), 0.5), dynamic_gate=gate, with_mask=False)
+        (res["rgb"].sum(-1) * weight).sum().backward()
+        return ([p.grad.clone() for p in enc.static_planes], [p.grad.clone() for p in enc.dynamic_planes])
+
+    s_all, d_all = grads(torch.ones(64))
+    s_static, _ = grads(1 - gate)
+    _, d_dyn = grads(gate)
+    for a, b in zip(s_all, s_static, strict=True):
+        assert torch.allclose(a, b, atol=1e-6)
+    for a, b in zip(d_all, d_dyn, strict=True):
+        assert torch.allclose(a, b, atol=1e-6)
+    assert sum(float(g.abs().sum()) for g in s_all) > 0 and sum(float(g.abs().sum()) for g in d_all) > 0
 
 
 def test_flight_without_people_trains_the_extended_model(dynamic_flight, tmp_path):
