@@ -69,8 +69,8 @@ class FitConfig:
     lambda_dist: float = 2e-3
     lambda_mask: float = 0.05
     mask_fg_weight: float = 1.0
-    #: background probability of the fresh mask head (0.25 = the old uniform start over 4 classes)
-    mask_init_background: float = 0.99
+    #: background probability of the fresh mask head (None: torch's default, ~uniform; see FieldConfig)
+    mask_init_background: float | None = None
     #: learning rate of the mask's grid and head relative to ``lr`` (their own Adam group when != 1)
     mask_lr_scale: float = 1.0
     #: "grid" (the mask's own small hash grid) or "geometry" (a head on the detached geometry features)
