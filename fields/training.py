@@ -9,6 +9,9 @@ stays unbiased: a ground point inside a person's box in few views must stay back
 ``mask_fg_weight`` on box pixels biases that and grows the blobs); ``lambda_empty`` x the mean
 density of random points in the upper part of the slab that no training ray saw as opaque (a weak
 prior that air is empty unless the images say otherwise).
+
+Optionally (``mask_phase_share``) the last part of the budget trains only the mask on the frozen
+geometry, from the cached live samples of a fixed set of rays (:class:`_MaskCache`).
 """
 
 from __future__ import annotations
@@ -79,7 +82,8 @@ class FitConfig:
     #: share of each ray batch drawn from pixels inside label boxes (0: uniform over all pixels)
     mask_pos_fraction: float = 0.0
     #: share of the budget (seconds; iterations without a budget) for a last phase that trains only
-    #: the mask on the frozen geometry (cheaper steps: no density gradients, skip grid)
+    #: the mask on the frozen geometry: the live samples of ``mask_phase_rays`` rays are computed once,
+    #: then minibatches train the mask grid and head on them (measured not to help at 60 s: RESULTS.md)
     mask_phase_share: float = 0.0
     #: also train the mask during the RGB phase (with a mask phase; without one it always trains there)
     mask_joint: bool = True
