@@ -13,6 +13,10 @@ of the image. Speed: synthetic images per minute (render + boxes + writing) on t
 threads.
 
     python bench/synthesis.py [--config hash-strat] [--count 8] [--size 640x480]
+    python bench/synthesis.py --rescore threshold=0.6,min_score=0.6   # box rules on the saved masks
+
+Every run keeps the rendered masks and true boxes in ``bench/out/synthesis_probs.npz``;
+``--rescore RULES`` (``BoxRules`` fields) scores other box rules on them without rendering.
 """
 
 from __future__ import annotations
@@ -57,7 +61,12 @@ def main() -> None:
     ap.add_argument("--min-height-px", type=float, default=6.0)
     ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--rescore", action="append", default=[],
+                    help="no rendering: BoxRules overrides key=value,... scored on the saved masks (repeatable)")
     args = ap.parse_args()
+    if args.rescore:
+        rescore(args.rescore, args.min_height_px)
+        return
 
     import torch
 
@@ -115,9 +124,12 @@ def main() -> None:
 
     world = make_world(seed=0)
     per_alt: dict[float, dict] = {}
-    rows = []
-    for pose, (rgb, prob) in zip(kept, renderer.views, strict=True):
+    rows, saved = [], {}
+    for k, (pose, (rgb, prob)) in enumerate(zip(kept, renderer.views, strict=True)):
         truth = world.render(cam, pose.cam_from_world, supersample=2)
+        saved[f"prob_{k}"] = prob.astype(np.float16)
+        saved[f"truth_{k}"] = np.array([[b.class_id, b.x0, b.y0, b.x1, b.y1] for b in truth.boxes], np.float32)
+        saved[f"alt_{k}"] = np.float32(pose.altitude_m)
         pred = boxes_from_probabilities(prob, rules)
         m = match_boxes(pred, truth.boxes, 0.5, args.min_height_px)
         m_any = match_boxes(pred, truth.boxes, 0.5, args.min_height_px, same_class=False)
@@ -134,6 +146,7 @@ def main() -> None:
         a["any"] = a["any"] + m_any
         a["psnr"].append(row["psnr"])
         a["ssim"].append(row["ssim"])
+    np.savez_compressed(OUT_DIR / "synthesis_probs.npz", **saved)
     summary = {}
     for alt, a in sorted(per_alt.items()):
         summary[f"{alt:g}"] = {"views": len(a["psnr"]), "recall": a["match"].recall, "precision": a["match"].precision,
@@ -149,6 +162,28 @@ def main() -> None:
                                     "load_start": load0, "load_end": load1, "per_altitude": summary,
                                     "views": rows, "dropped_poses": len(novel) - len(kept)}, args.json)
     print(f"wrote {path}")
+
+
+def rescore(rule_texts: list[str], min_height_px: float) -> None:
+    """Score box rules on the masks and truth boxes the last run saved (no rendering)."""
+    from bench.fields_ab import parse_variant
+    from fields.mask_boxes import BoxRules, MaskBox, boxes_from_probabilities
+    from fields.synthesis import BoxMatch, match_boxes
+
+    saved = np.load(OUT_DIR / "synthesis_probs.npz")
+    n = len([k for k in saved.files if k.startswith("prob_")])
+    for text in rule_texts:
+        _, over = parse_variant(":" + text)
+        rules = BoxRules(**over)
+        per_alt: dict[float, BoxMatch] = {}
+        for k in range(n):
+            truth = [MaskBox(int(c), x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in saved[f"truth_{k}"]]
+            pred = boxes_from_probabilities(saved[f"prob_{k}"].astype(np.float32), rules)
+            alt = float(saved[f"alt_{k}"])
+            per_alt[alt] = per_alt.get(alt, BoxMatch(0, 0, 0, [])) + match_boxes(pred, truth, 0.5, min_height_px)
+        print(json.dumps({"rules": over, **{f"{a:g}": {"recall": round(m.recall, 3), "precision": round(m.precision, 3),
+                                                      "mean_iou": round(m.mean_iou, 3)}
+                                           for a, m in sorted(per_alt.items())}}), flush=True)
 
 
 if __name__ == "__main__":

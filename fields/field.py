@@ -18,6 +18,7 @@ Points are world ENU metres; the field maps them into its scene box (``aabb`` lo
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -78,6 +79,10 @@ class FieldConfig:
     mask_resolutions: list = field(default_factory=lambda: [(16, 16, 4), (64, 64, 16)])
     mask_features: int = 2
     mask_log2_table: int = 16
+    #: background probability of a fresh mask head (its output bias, classes equal), e.g. 0.99: what no
+    #: mask ray has reached yet stays background. None: torch's default init, ~uniform over the C + 1
+    #: outputs, i.e. every untrained place starts as foreground 0.75 (bench/RESULTS.md, Session 3)
+    mask_init_background: float | None = None
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -123,6 +128,12 @@ class StaticField(nn.Module):
         else:
             raise ValueError(f"unknown mask_encoding {config.mask_encoding!r}; expected 'grid' or 'geometry'")
         self.mask_head = nn.Sequential(nn.Linear(mask_in, 32), nn.ReLU(), nn.Linear(32, config.n_classes + 1))
+        if config.mask_init_background is not None:
+            with torch.no_grad():
+                p0 = min(max(config.mask_init_background, 1e-6), 1.0 - 1e-6)
+                bias = self.mask_head[-1].bias
+                bias.zero_()
+                bias[0] = math.log(p0 * config.n_classes / (1.0 - p0))  # softmax: background p0, classes equal
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         """World ENU metres -> [0, 1]^3 of the scene box (not clamped)."""

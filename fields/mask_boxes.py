@@ -15,7 +15,8 @@ pixels, masks are soft at their edges, and neighbours can touch, so the rules ar
    least ``peak_dip`` in the raw probability along the straight line between every pair; pixels
    go to the peak they flow to (watershed). A hard 0/1 mask therefore never splits, and a split
    that would leave a piece under ``min_area_px`` is not made.
-5. Area: blobs with fewer than ``min_area_px`` pixels are dropped.
+5. Area and confidence: blobs with fewer than ``min_area_px`` pixels, or whose mean foreground
+   probability is below ``min_score`` (faint halo or fragment blobs), are dropped.
 6. Border: a blob touching the image border is dropped when an expected person size is known
    (``expected_size_px``, a person's largest extent in pixels at that range) and the blob's
    largest extent is below ``(1 - max_border_cut)`` of it, i.e. more than that share is cut off;
@@ -42,6 +43,8 @@ class BoxRules:
     peak_dip: float = 0.3
     max_border_cut: float = 0.5
     expected_size_px: float | None = None
+    #: blobs whose mean foreground probability is below this are dropped (0: keep all)
+    min_score: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -233,7 +236,7 @@ def _box_of(piece: np.ndarray, sl, fg: np.ndarray, class_id: int) -> MaskBox | N
 
 
 def _keep(box: MaskBox, shape, rules: BoxRules) -> bool:
-    if box.area_px < rules.min_area_px:
+    if box.area_px < rules.min_area_px or box.score < rules.min_score:
         return False
     h, w = shape
     if rules.expected_size_px is None:

@@ -109,24 +109,17 @@ class StaticModel(nn.Module):
         ijk = torch.minimum((x.clamp(0, 1) * shape).long(), shape - 1)
         return inside & grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
 
-    def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, image_idx: torch.Tensor | None = None,
-                    train: bool = False, with_mask: bool = True, generator=None) -> dict:
-        """Render R rays: ``rgb`` (R,3), ``acc`` (R,1), ``depth`` (R,1), ``mask_probs`` (R,C+1),
-        and for the losses ``weights`` (R,S) and ``t_norm`` (R,S+1) (edges scaled to [0,1] per ray).
-
-        In eval mode without gradients (rendering), three shortcuts, each bounded by a stated error:
-        samples in cells the skip grid marks empty get density 0 (:meth:`build_skip_grid`), and
-        colour and mask are evaluated only at samples whose weight is >= ``SamplerConfig.min_weight``
-        (so samples behind the surface, where transmittance has died, cost only their density).
-        The mask is always evaluated only at such samples (its loss never needs the others).
-        """
+    def _weights(self, origins: torch.Tensor, dirs: torch.Tensor, train: bool, skip: bool,
+                 generator=None) -> tuple:
+        """Samples and rendering weights of R rays: ``(edges (R,S+1), mid (R,S), pts (R*S,3),
+        geo (R*S,G), w (R,S))``. ``skip``: samples in cells the skip grid marks empty get density 0
+        and zero features, without evaluating the field (built on first use, eval mode only)."""
         f = self.field
-        fast = not train and not torch.is_grad_enabled() and not self.training
         edges = self.sampler.edges(origins, dirs, f.lo, f.hi, train=train, generator=generator)
         r, s1 = edges.shape
         s = s1 - 1
         mid, deltas, pts = sample_points(origins, dirs, edges)
-        if fast and self.sampler_config.skip_threshold > 0:
+        if skip and self.sampler_config.skip_threshold > 0:
             if self.skip_grid is None:
                 self.build_skip_grid()
             occ = self._occupied(pts).view(r, s)
@@ -144,7 +137,56 @@ class StaticModel(nn.Module):
             floor = (origins[:, 2] + edges[:, -1] * dirs[:, 2]) <= f.lo[2] + 1e-3
             last = torch.where(floor, torch.full_like(sigma[:, -1], 1e4), sigma[:, -1])
             sigma = torch.cat([sigma[:, :-1], last[:, None]], dim=-1)
-        w = weights_from_density(sigma, deltas)
+        return edges, mid, pts, geo, weights_from_density(sigma, deltas)
+
+    def _mask_probs(self, w: torch.Tensor, pts: torch.Tensor, geo: torch.Tensor) -> torch.Tensor:
+        """Composited class probabilities (R, C+1) with *detached* weights ``w`` (R,S): the mask reads
+        the geometry but cannot carve it (else "background" is cheapest to explain by making the
+        ground transparent). Evaluated only at samples with weight >= ``min_weight``."""
+        return self.composite_mask(*self._live_samples(w.detach(), pts, geo))
+
+    def _live_samples(self, w: torch.Tensor, pts: torch.Tensor, geo: torch.Tensor) -> tuple:
+        """The samples with weight >= ``min_weight`` of R rays: ``(ray (L,) long, weight (L,),
+        point (L,3), geometry feature (L,G), rest (R,))``, ``rest`` = 1 - the ray's total weight."""
+        r, s = w.shape
+        live = (w.reshape(-1) >= self.sampler_config.min_weight).nonzero()[:, 0]
+        return live // s, w.reshape(-1)[live], pts[live], geo[live], 1.0 - w.sum(-1)
+
+    def composite_mask(self, ray: torch.Tensor, w: torch.Tensor, pts: torch.Tensor, geo: torch.Tensor,
+                       rest: torch.Tensor) -> torch.Tensor:
+        """Class probabilities (R, C+1) of R rays from their live samples (see :meth:`_live_samples`):
+        sum of weight x softmax(mask logits) per ray, plus ``rest`` on the background class (what the
+        ray sees beyond the field is background)."""
+        n_cls = self.field.config.n_classes + 1
+        out = torch.zeros(rest.shape[0], n_cls, device=rest.device)
+        if len(ray):
+            probs = torch.softmax(self.field.mask_logits(pts, geo), dim=-1)
+            out = out.index_add(0, ray, w[:, None] * probs)
+        return torch.cat([out[:, :1] + rest[:, None], out[:, 1:]], dim=-1)
+
+    @torch.no_grad()
+    def mask_samples(self, origins: torch.Tensor, dirs: torch.Tensor) -> tuple:
+        """Live samples of R rays for training the mask on a frozen geometry (no gradients, no
+        jitter, no skip grid): ``(ray, weight, point, geometry feature, rest)`` as
+        :meth:`composite_mask` takes them."""
+        *_, pts, geo, w = self._weights(origins, dirs, False, False)
+        return self._live_samples(w, pts, geo)
+
+    def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, image_idx: torch.Tensor | None = None,
+                    train: bool = False, with_mask: bool = True, generator=None) -> dict:
+        """Render R rays: ``rgb`` (R,3), ``acc`` (R,1), ``depth`` (R,1), ``mask_probs`` (R,C+1),
+        and for the losses ``weights`` (R,S) and ``t_norm`` (R,S+1) (edges scaled to [0,1] per ray).
+
+        In eval mode without gradients (rendering), three shortcuts, each bounded by a stated error:
+        samples in cells the skip grid marks empty get density 0 (:meth:`build_skip_grid`), and
+        colour and mask are evaluated only at samples whose weight is >= ``SamplerConfig.min_weight``
+        (so samples behind the surface, where transmittance has died, cost only their density).
+        The mask is always evaluated only at such samples (its loss never needs the others).
+        """
+        f = self.field
+        fast = not train and not torch.is_grad_enabled() and not self.training
+        edges, mid, pts, geo, w = self._weights(origins, dirs, train, fast, generator)
+        r, s = w.shape
         d_rep = dirs[:, None, :].expand(r, s, 3).reshape(-1, 3)
         i_rep = None if image_idx is None else image_idx[:, None].expand(r, s).reshape(-1)
         if fast:
@@ -159,17 +201,7 @@ class StaticModel(nn.Module):
         span = (edges[:, -1:] - edges[:, :1]).clamp_min(1e-6)
         res["t_norm"] = (edges - edges[:, :1]) / span
         if with_mask:
-            # weights detached: the mask reads the geometry but cannot carve it (else "background"
-            # is cheapest to explain by making the ground transparent); only samples that matter
-            wd = w.detach()
-            live = (wd.view(-1) >= self.sampler_config.min_weight).nonzero()[:, 0]
-            n_cls = f.config.n_classes + 1
-            probs = torch.zeros(r * s, n_cls, device=pts.device)
-            if len(live):
-                probs = probs.index_copy(0, live, torch.softmax(f.mask_logits(pts[live], geo[live]), dim=-1))
-            bg_class = torch.zeros(n_cls, device=probs.device)
-            bg_class[0] = 1.0
-            res["mask_probs"] = composite(wd, probs.view(r, s, n_cls), bg_class)
+            res["mask_probs"] = self._mask_probs(w, pts, geo)
         return res
 
     def distortion(self, res: dict) -> torch.Tensor:

@@ -9,6 +9,9 @@ stays unbiased: a ground point inside a person's box in few views must stay back
 ``mask_fg_weight`` on box pixels biases that and grows the blobs); ``lambda_empty`` x the mean
 density of random points in the upper part of the slab that no training ray saw as opaque (a weak
 prior that air is empty unless the images say otherwise).
+
+Optionally (``mask_phase_share``) the last part of the budget trains only the mask on the frozen
+geometry, from the cached live samples of a fixed set of rays (:class:`_MaskCache`).
 """
 
 from __future__ import annotations
@@ -69,11 +72,27 @@ class FitConfig:
     lambda_dist: float = 2e-3
     lambda_mask: float = 0.05
     mask_fg_weight: float = 1.0
+    #: background probability of the fresh mask head (None: torch's default, ~uniform; see FieldConfig)
+    mask_init_background: float | None = None
+    #: learning rate of the mask's grid and head relative to ``lr`` (their own Adam group when != 1)
+    mask_lr_scale: float = 1.0
     #: "grid" (the mask's own small hash grid) or "geometry" (a head on the detached geometry features)
     mask_encoding: str = "grid"
     mask_log2_table: int = 16
     #: share of each ray batch drawn from pixels inside label boxes (0: uniform over all pixels)
     mask_pos_fraction: float = 0.0
+    #: share of the budget (seconds; iterations without a budget) for a last phase that trains only
+    #: the mask on the frozen geometry: the live samples of ``mask_phase_rays`` rays are computed once,
+    #: then minibatches train the mask grid and head on them (measured not to help at 60 s: RESULTS.md)
+    mask_phase_share: float = 0.0
+    #: also train the mask during the RGB phase (with a mask phase; without one it always trains there)
+    mask_joint: bool = True
+    #: rays whose live samples the mask phase computes once (the costly part), and its minibatch
+    mask_phase_rays: int = 32768
+    mask_phase_batch_rays: int = 4096
+    #: share of the mask phase's rays drawn inside label boxes (importance-weighted, unbiased)
+    mask_phase_pos_fraction: float = 0.25
+    mask_phase_lr: float = 1e-2
     lambda_empty: float = 0.0
     occupancy_every: int = 16
     occupancy_warmup: int = 200
@@ -93,6 +112,8 @@ class FitResult:
     curve: list[dict] = field(default_factory=list)
     bounds: SceneBounds | None = None
     sizing: Sizing | None = None
+    #: steps of the mask-only phase (included in ``step``)
+    mask_steps: int = 0
 
 
 def device() -> torch.device:
@@ -119,7 +140,8 @@ def build_model(data: FlightData, train_idx: list[int], cfg: FitConfig, flight: 
                      resolutions=sizing.resolutions, features=sizing.features, log2_table=sizing.log2_table,
                      hidden=cfg.hidden, n_images=data.n, appearance_dim=cfg.appearance_dim,
                      view_dependent=cfg.view_dependent, n_classes=len(data.classes),
-                     mask_encoding=cfg.mask_encoding, mask_resolutions=mask_res, mask_log2_table=mask_log2)
+                     mask_encoding=cfg.mask_encoding, mask_resolutions=mask_res, mask_log2_table=mask_log2,
+                     mask_init_background=cfg.mask_init_background)
     ext = np.asarray(bounds.extent)
     grid = tuple(int(min(256, max(8, math.ceil(e / c)))) for e, c in zip(ext, (0.5, 0.5, 0.25), strict=True))
     sc = SamplerConfig(cfg.sampler, cfg.n_samples, 96, grid)
@@ -143,12 +165,18 @@ def _mask_grid(bounds: SceneBounds, cfg: FitConfig, geo_mb: float, sizing: Sizin
 
 def _optimizer(model: StaticModel, cfg: FitConfig):
     enc = list(model.field.encoding.parameters()) + list(model.background.parameters())
+    mask = list(model.field.mask_head.parameters())
     if model.field.mask_grid is not None:
-        enc += list(model.field.mask_grid.parameters())
-    enc_ids = {id(p) for p in enc}
-    rest = [p for p in model.parameters() if id(p) not in enc_ids]
+        mask += list(model.field.mask_grid.parameters())
+    if cfg.mask_lr_scale == 1.0:  # the mask grid with the encodings, its head with the MLPs
+        enc += mask[len(list(model.field.mask_head.parameters())):]
+        mask = []
+    taken = {id(p) for p in enc + mask}
+    rest = [p for p in model.parameters() if id(p) not in taken]
     groups = [{"params": enc, "lr": cfg.lr, "eps": 1e-15, "scale": 1.0},
               {"params": rest, "lr": cfg.lr * cfg.mlp_lr_scale, "eps": 1e-15, "scale": cfg.mlp_lr_scale}]
+    if mask:
+        groups.append({"params": mask, "lr": cfg.lr * cfg.mask_lr_scale, "eps": 1e-15, "scale": cfg.mask_lr_scale})
     try:
         return torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99), fused=True)
     except (RuntimeError, TypeError):  # older torch without fused CPU Adam
@@ -239,45 +267,91 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     fg_w = torch.ones(len(data.classes) + 1, device=dev)
     fg_w[1:] = cfg.mask_fg_weight
     pos_frame, pos_pixel = _positive_pixels(masks, has_mask, train_t)
-    n_pos = int(round(cfg.mask_pos_fraction * cfg.batch_rays)) if cfg.lambda_mask > 0 and len(pos_frame) else 0
-    # importance weights (background, box pixel) so that oversampling keeps the mask loss unbiased:
-    # the ray mixture draws a box pixel with probability (B_u/B)/N + (B_p/B)/N_pos, a background one (B_u/B)/N
-    n_all, n_uni = len(train_idx) * hw, cfg.batch_rays - n_pos
-    iw = torch.tensor([cfg.batch_rays / n_uni, cfg.batch_rays / (n_uni + n_pos * n_all / max(len(pos_frame), 1))],
-                      device=dev)
+    mask_frames = train_t[has_mask[train_t]]
+    # the mask-only phase: the last ``mask_phase_share`` of the budget (seconds, or iterations without one)
+    share = cfg.mask_phase_share if cfg.lambda_mask > 0 and len(mask_frames) else 0.0
+    main_iters = cfg.iters - int(round(share * cfg.iters)) if not cfg.budget_s else cfg.iters
+    main_budget = cfg.budget_s * (1.0 - share) if cfg.budget_s else None
+    joint_mask = cfg.lambda_mask > 0 and (cfg.mask_joint or share == 0)
+    n_pos = int(round(cfg.mask_pos_fraction * cfg.batch_rays)) if joint_mask and len(pos_frame) else 0
+    iw = _importance_weights(cfg.batch_rays, n_pos, len(train_idx) * hw, len(pos_frame), dev)
     evals_s = sorted(eval_at_s or [])
     evals_i = sorted(eval_at_iters or [])
 
     def progress() -> float:
-        return schedule_progress(step, cfg.iters, train_s, cfg.budget_s)
+        return schedule_progress(step, main_iters, train_s, main_budget)
+
+    def draw(frames: torch.Tensor, n: int, n_box: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(frame, pixel) of ``n`` rays: uniform over ``frames``, then ``n_box`` of them inside label boxes."""
+        fi = frames[torch.randint(len(frames), (n - n_box,), device=dev, generator=gen)]
+        pi = torch.randint(hw, (n - n_box,), device=dev, generator=gen)
+        if n_box:  # oversampled pixels inside label boxes (people cover ~1 % of a frame)
+            k = torch.randint(len(pos_frame), (n_box,), device=dev, generator=gen)
+            fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
+        return fi, pi
 
     last_log = last_ckpt = 0.0
     interactive = sys.stderr.isatty()
     t_mark = time.perf_counter()
     loss_ema = None
-    while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
+
+    def after_step(loss_value: float, lr: float, phase: str) -> None:
+        """Count the step and its time; log, call the evaluation hook and checkpoint when due."""
+        nonlocal step, train_s, t_mark, last_log, last_ckpt, loss_ema
+        step += 1
+        now = time.perf_counter()
+        train_s += now - t_mark
+        t_mark = now
+        loss_ema = loss_value if loss_ema is None else 0.95 * loss_ema + 0.05 * loss_value
+        if train_s - last_log >= cfg.log_every_s:
+            last_log = train_s
+            if phase == "rgb":
+                p = -10 * math.log10(max(loss_ema, 1e-10))
+                curve.append({"step": step, "train_s": round(train_s, 2), "train_psnr": round(p, 2), "lr": lr})
+                msg = f"step {step} {train_s:.0f}s train PSNR {p:.2f} dB lr {lr:.2e}"
+            else:
+                curve.append({"step": step, "train_s": round(train_s, 2), "mask_nll": round(loss_ema, 4), "lr": lr})
+                msg = f"step {step} {train_s:.0f}s mask phase NLL {loss_ema:.4f} lr {lr:.2e}"
+            if interactive:
+                print(f"\r{msg}   ", end="", file=sys.stderr, flush=True)
+            log.info(msg)
+        hook = False
+        while evals_s and train_s >= evals_s[0]:
+            evals_s.pop(0)
+            hook = True
+        while evals_i and step >= evals_i[0]:
+            evals_i.pop(0)
+            hook = True
+        if hook and on_eval:
+            mode = model.training
+            model.eval()
+            on_eval(model, step, train_s)
+            model.train(mode)
+            t_mark = time.perf_counter()
+        if ckpt and train_s - last_ckpt >= cfg.checkpoint_every_s:
+            last_ckpt = train_s
+            save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
+            t_mark = time.perf_counter()
+
+    while step < main_iters and (main_budget is None or train_s < main_budget):
         lr = cfg.lr * cfg.lr_final ** progress()
         for g in optim.param_groups:
             g["lr"] = lr * g.get("scale", 1.0)
-        fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays - n_pos,), device=dev, generator=gen)]
-        pi = torch.randint(hw, (cfg.batch_rays - n_pos,), device=dev, generator=gen)
-        if n_pos:  # oversampled pixels inside label boxes (people cover ~1 % of a frame)
-            k = torch.randint(len(pos_frame), (n_pos,), device=dev, generator=gen)
-            fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
+        fi, pi = draw(train_t, cfg.batch_rays, n_pos)
         o, d = bank.rays(fi, pi)
         target = images[fi, pi].float() / 255.0
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
-            res = model.render_rays(o, d, fi, train=True, generator=gen, with_mask=cfg.lambda_mask > 0)
+            res = model.render_rays(o, d, fi, train=True, generator=gen, with_mask=joint_mask)
             loss_rgb = torch.mean((res["rgb"] - target) ** 2)
             loss = loss_rgb
             if cfg.lambda_dist > 0:
                 loss = loss + cfg.lambda_dist * model.distortion(res)
-            if cfg.lambda_mask > 0:
+            if joint_mask:
                 m_ok = has_mask[fi]
                 if m_ok.any():
                     tgt = masks[fi, pi][m_ok]
-                    nll = -torch.log(res["mask_probs"][m_ok].clamp_min(1e-6)).gather(1, tgt[:, None])[:, 0]
-                    loss = loss + cfg.lambda_mask * (nll * fg_w[tgt] * iw[(tgt > 0).long()]).mean()
+                    loss = loss + cfg.lambda_mask * _mask_nll(res["mask_probs"][m_ok], tgt,
+                                                              fg_w[tgt] * iw[(tgt > 0).long()])
             if cfg.lambda_empty > 0:
                 lo, hi = model.field.lo, model.field.hi
                 u = torch.rand(4096, 3, device=dev, generator=gen)
@@ -291,44 +365,93 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         else:
             loss.backward()
             optim.step()
-        step += 1
-        if cfg.sampler == "occupancy" and step >= cfg.occupancy_warmup and step % cfg.occupancy_every == 0:
+        if cfg.sampler == "occupancy" and step + 1 >= cfg.occupancy_warmup and (step + 1) % cfg.occupancy_every == 0:
             model.sampler.update(model.field.density, model.field.lo, model.field.hi, generator=gen)
+        after_step(float(loss_rgb.detach()), lr, "rgb")
+
+    mask_steps = 0
+    if share > 0 and step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
+        # mask only, on the frozen geometry: the live samples of a fixed set of rays are computed
+        # once (the costly part: density at every sample), then the mask trains on them for the rest
+        model.eval()
+        n_box = int(round(cfg.mask_phase_pos_fraction * cfg.mask_phase_rays)) if len(pos_frame) else 0
+        fi, pi = draw(mask_frames, cfg.mask_phase_rays, n_box)
+        cache = _MaskCache(model, bank, fi, pi, masks,
+                           _importance_weights(cfg.mask_phase_rays, n_box, len(mask_frames) * hw, len(pos_frame), dev),
+                           fg_w)
+        params = list(model.field.mask_head.parameters())
+        params += list(model.field.mask_grid.parameters()) if model.field.mask_grid is not None else []
+        mask_optim = torch.optim.Adam(params, lr=cfg.mask_phase_lr, betas=(0.9, 0.99), eps=1e-15)
         now = time.perf_counter()
-        train_s += now - t_mark
-        t_mark = now
-        lv = float(loss_rgb.detach())
-        loss_ema = lv if loss_ema is None else 0.95 * loss_ema + 0.05 * lv
-        if train_s - last_log >= cfg.log_every_s:
-            last_log = train_s
-            p = -10 * math.log10(max(loss_ema, 1e-10))
-            curve.append({"step": step, "train_s": round(train_s, 2), "train_psnr": round(p, 2), "lr": lr})
-            msg = f"step {step} {train_s:.0f}s train PSNR {p:.2f} dB lr {lr:.2e}"
-            if interactive:
-                print(f"\r{msg}   ", end="", file=sys.stderr, flush=True)
-            log.info(msg)
-        hook = False
-        while evals_s and train_s >= evals_s[0]:
-            evals_s.pop(0)
-            hook = True
-        while evals_i and step >= evals_i[0]:
-            evals_i.pop(0)
-            hook = True
-        if hook and on_eval:
-            model.eval()
-            on_eval(model, step, train_s)
-            model.train()
-            t_mark = time.perf_counter()
-        if ckpt and train_s - last_ckpt >= cfg.checkpoint_every_s:
-            last_ckpt = train_s
-            save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
-            t_mark = time.perf_counter()
+        train_s, t_mark = train_s + now - t_mark, now  # the cache's time counts as training
+        step0, s0 = step, train_s
+        loss_ema = None
+        while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
+            done = (train_s - s0) / max(cfg.budget_s - s0, 1e-9) if cfg.budget_s else \
+                (step - step0) / max(cfg.iters - step0, 1)
+            lr = cfg.mask_phase_lr * cfg.lr_final ** min(done, 1.0)
+            for g in mask_optim.param_groups:
+                g["lr"] = lr
+            loss = cache.loss(model, cfg.mask_phase_batch_rays, gen)
+            mask_optim.zero_grad(set_to_none=True)
+            loss.backward()
+            mask_optim.step()
+            after_step(float(loss.detach()), lr, "mask")
+        mask_steps = step - step0
     if interactive:
         print(file=sys.stderr)
     model.eval()
     if ckpt:
         save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
-    return FitResult(model, step, train_s, curve, bounds, sizing)
+    return FitResult(model, step, train_s, curve, bounds, sizing, mask_steps)
+
+
+class _MaskCache:
+    """Rays for the mask-only phase with their live samples on the frozen geometry (computed once, in
+    chunks), targets and loss weights; :meth:`loss` draws a minibatch of rays and composites their mask."""
+
+    def __init__(self, model: StaticModel, bank: RayBank, fi: torch.Tensor, pi: torch.Tensor,
+                 masks: torch.Tensor, iw: torch.Tensor, fg_w: torch.Tensor, chunk: int = 4096):
+        parts = []
+        for a in range(0, len(fi), chunk):
+            o, d = bank.rays(fi[a:a + chunk], pi[a:a + chunk])
+            ray, w, pts, geo, rest = model.mask_samples(o, d)
+            parts.append((ray + a, w, pts, geo, rest))
+        self.ray, self.w, self.pts, self.geo, self.rest = (torch.cat(p) for p in zip(*parts, strict=True))
+        self.target = masks[fi, pi]
+        # importance weights by label: a box pixel can be drawn uniformly or from the boxes
+        self.weight = fg_w[self.target] * iw[(self.target > 0).long()]
+        order = torch.argsort(self.ray, stable=True)
+        self.ray, self.w, self.pts, self.geo = self.ray[order], self.w[order], self.pts[order], self.geo[order]
+        self.start = torch.searchsorted(self.ray, torch.arange(len(fi) + 1, device=self.ray.device))
+
+    def probs(self, model: StaticModel, rays: torch.Tensor) -> torch.Tensor:
+        """Composited class probabilities (len(rays), C+1) of the cached rays ``rays`` (indices)."""
+        counts = self.start[rays + 1] - self.start[rays]
+        local = torch.repeat_interleave(torch.arange(len(rays), device=rays.device), counts)  # sample -> batch ray
+        first = counts.cumsum(0) - counts  # each batch ray's first sample in the gathered order
+        idx = self.start[rays][local] + torch.arange(len(local), device=rays.device) - first[local]
+        return model.composite_mask(local, self.w[idx], self.pts[idx], self.geo[idx], self.rest[rays])
+
+    def loss(self, model: StaticModel, batch: int, gen) -> torch.Tensor:
+        """Weighted mask NLL of ``batch`` cached rays drawn without replacement."""
+        rays = torch.randperm(len(self.target), device=self.ray.device, generator=gen)[:batch]
+        return _mask_nll(self.probs(model, rays), self.target[rays], self.weight[rays])
+
+
+def _importance_weights(batch: int, n_box: int, n_all: int, n_pos: int, dev) -> torch.Tensor:
+    """Loss weights (background pixel, box pixel) that keep the mask loss unbiased when ``n_box`` of
+    ``batch`` rays are drawn from the ``n_pos`` box pixels and the rest uniformly from ``n_all``
+    pixels: the mixture draws a box pixel with probability (B_u/B)/N + (B_p/B)/N_pos, a background
+    one (B_u/B)/N."""
+    n_uni = batch - n_box
+    return torch.tensor([batch / n_uni, batch / (n_uni + n_box * n_all / max(n_pos, 1))], device=dev)
+
+
+def _mask_nll(probs: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Weighted mean negative log-likelihood of the target classes (R,) under probabilities (R, C+1)."""
+    nll = -torch.log(probs.clamp_min(1e-6)).gather(1, target[:, None])[:, 0]
+    return (nll * weights).mean()
 
 
 def _positive_pixels(masks: torch.Tensor, has_mask: torch.Tensor, train_t: torch.Tensor):

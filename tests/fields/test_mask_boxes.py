@@ -50,6 +50,15 @@ def test_tiny_blobs_below_min_area_are_dropped():
     assert [(b.x0, b.y0) for b in boxes] == [(10, 10)]
 
 
+def test_faint_blobs_below_min_score_are_dropped():
+    p = _mask(20, 20)
+    _paint(p, 2, 6, 2, 6, cls=0, value=0.55)  # a faint halo blob: mean foreground 0.55
+    _paint(p, 10, 14, 10, 14, cls=0, value=0.9)
+    assert len(boxes_from_probabilities(p)) == 2  # off by default
+    boxes = boxes_from_probabilities(p, BoxRules(min_score=0.6))
+    assert [(b.x0, b.y0, round(b.score, 2)) for b in boxes] == [(10, 10, 0.9)]
+
+
 def test_blob_cut_by_border_dropped_only_beyond_the_threshold():
     p = _mask(30, 30)
     _paint(p, 10, 13, 0, 3, cls=0)  # mostly outside the frame: 3 px of an expected 12
