@@ -42,7 +42,7 @@ class DemoPlan:
     train_budget_s: float | None
 
 
-QUICK = DemoPlan(frames=32, width=320, height=240, fit_budget_s=60.0, synth_count=16, epochs=8, imgsz=320,
+QUICK = DemoPlan(frames=32, width=320, height=240, fit_budget_s=150.0, synth_count=16, epochs=8, imgsz=320,
                  batch=8, test_images=8, sfm=True, train_budget_s=45.0)
 FULL = DemoPlan(frames=60, width=640, height=480, fit_budget_s=300.0, synth_count=0, epochs=20, imgsz=640,
                 batch=16, test_images=40, sfm=True, train_budget_s=None)
