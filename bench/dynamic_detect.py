@@ -38,25 +38,16 @@ def time_split(samples: list) -> dict[str, list]:
 
 
 def fit_field(flight: Path, budget_s: float, seed: int) -> dict:
-    """Extended K-Planes on the even frames (kept when ``derived/fields/dynamic.pt`` exists)."""
+    """Extended K-Planes on the even frames (kept when ``derived/fields/dynamic.pt`` and its summary exist)."""
     import json
 
-    from fields.dynamic_data import load_dynamic_flight
-    from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split
+    from fields.dynamic_cli import fit_dynamic_flight
 
     out = flight / "derived" / "fields"
     summary = out / "bench_fit.json"
     if (out / "dynamic.pt").is_file() and summary.is_file():
         return json.loads(summary.read_text())
-    dd = load_dynamic_flight(flight)
-    cfg = DynamicFitConfig(kind="kplanes-ext", budget_s=budget_s, iters=10**9, holdout_every=2, seed=seed,
-                           checkpoint_every_s=1e9)
-    result = fit_dynamic(dd, cfg, out_dir=out, flight=flight)
-    _, val = split(dd, 2)
-    ev = evaluate_dynamic(result.model, dd, val)
-    info = {"steps": result.step, "train_s": round(result.train_s, 1), "heldout_psnr": ev["psnr"],
-            "heldout_ssim": ev["ssim"], "params": result.model.param_count()}
-    out.mkdir(parents=True, exist_ok=True)
+    info = fit_dynamic_flight(flight, out, "kplanes-ext", budget_s=budget_s, holdout_every=2, seed=seed)
     summary.write_text(json.dumps(info, indent=1) + "\n")
     return info
 
