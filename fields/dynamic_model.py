@@ -149,13 +149,14 @@ class DynamicModel(nn.Module):
     def render_image(self, camera, cam_from_world: np.ndarray, time01: float, chunk: int = 8192,
                      with_mask: bool = True) -> dict:
         """A full frame at scene time ``time01``: ``rgb`` (H,W,3) in [0,1], ``mask`` (H,W) class ids,
-        ``acc``, ``depth`` (H,W); extended models also ``dynamic`` (H,W) probability. Mean appearance."""
+        ``mask_probs`` (H,W,C+1) class probabilities (channel 0 background), ``acc``, ``depth`` (H,W);
+        extended models also ``dynamic`` (H,W) probability. Mean appearance."""
         dev = self.field.lo.device
         uv = camera.pixel_grid().reshape(-1, 2)
         o, d = camera.rays_world(np.asarray(cam_from_world, np.float64), uv)
         o = torch.from_numpy(np.broadcast_to(o, d.shape).copy()).float().to(dev)
         d = torch.from_numpy(d).float().to(dev)
-        outs: dict[str, list] = {"rgb": [], "acc": [], "depth": [], "mask": [], "dynamic": []}
+        outs: dict[str, list] = {"rgb": [], "acc": [], "depth": [], "mask": [], "mask_probs": [], "dynamic": []}
         for a in range(0, d.shape[0], chunk):
             n = min(chunk, d.shape[0] - a)
             t = torch.full((n,), float(time01), device=dev)
@@ -165,14 +166,17 @@ class DynamicModel(nn.Module):
             outs["depth"].append(res["depth"][:, 0])
             if with_mask:
                 outs["mask"].append(res["mask_probs"].argmax(-1))
+                outs["mask_probs"].append(res["mask_probs"])
             if "dynamic_prob" in res:
                 outs["dynamic"].append(res["dynamic_prob"])
         h, w = camera.height, camera.width
-        return {k: torch.cat(v).view(h, w, *([3] if k == "rgb" else [])).cpu().numpy() for k, v in outs.items() if v}
+        return {k: torch.cat(v).view(h, w, -1 if k in ("rgb", "mask_probs") else 1).squeeze(-1).cpu().numpy()
+                for k, v in outs.items() if v}
 
 
 def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_images: int, n_classes: int,
-                      features: int = 16, hidden: int = 64, appearance_dim: int = 8) -> KPlanesFieldConfig:
+                      features: int = 16, hidden: int = 64, appearance_dim: int = 8,
+                      mask_init_background: float | None = None) -> KPlanesFieldConfig:
     """Field config for ``kind`` over the slab ``bounds``; time resolution = half the frames."""
     from fields.dynamic_data import time_resolution
 
@@ -180,4 +184,5 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
                            time_resolution=time_resolution(n_frames), features=features,
                            extended=(kind == "kplanes-ext"))
     return KPlanesFieldConfig(aabb_lo=tuple(bounds.lo), aabb_hi=tuple(bounds.hi), planes=planes, hidden=hidden,
-                              n_images=n_images, appearance_dim=appearance_dim, n_classes=n_classes)
+                              n_images=n_images, appearance_dim=appearance_dim, n_classes=n_classes,
+                              mask_init_background=mask_init_background)

@@ -30,11 +30,13 @@ import torch.nn.functional as F
 
 from fields.dynamic_data import DynamicFlightData
 from fields.dynamic_model import DynamicModel, make_field_config, plane_sizing
-from fields.evaluation import MaskBox, boxes_from_mask, match_boxes, psnr, ssim
+from fields.evaluation import MaskBox, match_boxes, psnr, ssim
 from fields.kplanes import cosine_separation
+from fields.mask_boxes import boxes_from_probabilities
 from fields.model import SamplerConfig
 from fields.scene import SceneBounds, scene_bounds
-from fields.training import configure_threads, device, schedule_progress
+from fields.synthesis import match_boxes as match_detections
+from fields.training import configure_threads, device, importance_weights, positive_pixels, schedule_progress
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +68,13 @@ class DynamicFitConfig:
     lambda_dist: float = 2e-3
     lambda_mask: float = 0.05
     mask_fg_weight: float = 4.0
+    #: background probability of the fresh class-mask head (None: torch's default, ~uniform)
+    mask_init_background: float | None = None
+    #: share of each ray batch drawn from pixels inside label boxes (people are ~2 % of a frame).
+    #: The mask losses are importance-weighted (unbiased); the colour loss is not, so the people's
+    #: colour and geometry get that share of the colour loss (a bias towards them, as for the
+    #: static field's ``mask_pos_fraction``). Extended: the dynamic planes learn only from these rays.
+    box_ray_fraction: float = 0.0
     lambda_tv: float = 2e-4
     lambda_time_smooth: float = 1e-3
     lambda_time_l1: float = 1e-4
@@ -106,7 +115,7 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     bounds = scene_bounds(flight, data.camera, [data.cam_from_world[i] for i in train_idx])
     sizing = plane_sizing(bounds.extent, bounds.finest_gsd_m, cfg.max_resolution, cfg.cell_factor)
     fc = make_field_config(cfg.kind, bounds, sizing, dd.n, data.n, len(data.classes), cfg.features, cfg.hidden,
-                           cfg.appearance_dim)
+                           cfg.appearance_dim, cfg.mask_init_background)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
@@ -192,6 +201,9 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     fg_w = torch.ones(len(data.classes) + 1, device=dev)
     fg_w[1:] = cfg.mask_fg_weight
     ext = model.extended
+    pos_frame, pos_pixel = positive_pixels(masks, has_mask, train_t)
+    n_box = int(round(cfg.box_ray_fraction * cfg.batch_rays)) if len(pos_frame) else 0
+    iw = importance_weights(cfg.batch_rays, n_box, len(train_idx) * hw, len(pos_frame), dev)
 
     def progress() -> float:
         return schedule_progress(step, cfg.iters, train_s, cfg.budget_s)
@@ -204,12 +216,16 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         lr = cfg.lr * cfg.lr_final ** progress()
         for g in optim.param_groups:
             g["lr"] = lr
-        fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays,), device=dev, generator=gen)]
-        pi = torch.randint(hw, (cfg.batch_rays,), device=dev, generator=gen)
+        fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays - n_box,), device=dev, generator=gen)]
+        pi = torch.randint(hw, (cfg.batch_rays - n_box,), device=dev, generator=gen)
+        if n_box:
+            k = torch.randint(len(pos_frame), (n_box,), device=dev, generator=gen)
+            fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
         o, d = bank.rays(fi, pi)
         target = images[fi, pi].float() / 255.0
         cls = masks[fi, pi]
         dyn = (cls > 0).float()
+        mask_w = iw[(cls > 0).long()]  # importance weights of the mask losses (all 1 without box rays)
         gate = dyn if (ext and cfg.gate) else None
         res = model.render_rays(o, d, t01[fi], fi, train=True, with_mask=cfg.lambda_mask > 0, dynamic_gate=gate,
                                 with_features=ext and cfg.lambda_cos > 0, generator=gen)
@@ -221,10 +237,10 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         if cfg.lambda_mask > 0 and m_ok.any():
             tgt = cls[m_ok]
             nll = -torch.log(res["mask_probs"][m_ok].clamp_min(1e-6)).gather(1, tgt[:, None])[:, 0]
-            loss = loss + cfg.lambda_mask * (nll * fg_w[tgt]).mean()
+            loss = loss + cfg.lambda_mask * (nll * fg_w[tgt] * mask_w[m_ok]).mean()
         if ext and cfg.lambda_dynamic > 0 and m_ok.any():
             p = res["dynamic_prob"][m_ok].clamp(1e-5, 1 - 1e-5)
-            loss = loss + cfg.lambda_dynamic * F.binary_cross_entropy(p, dyn[m_ok])
+            loss = loss + cfg.lambda_dynamic * F.binary_cross_entropy(p, dyn[m_ok], weight=mask_w[m_ok])
         if ext and cfg.lambda_cos > 0:
             # the first ``cos_points`` samples = whole rays from the front of a batch of random rays:
             # a slice is a view (random indexing of the 18 strided feature tensors cost ~5 % of a step)
@@ -268,12 +284,15 @@ def evaluate_dynamic(model: DynamicModel, dd: DynamicFlightData, indices: list[i
                      out_dir: Path | None = None) -> dict:
     """Held-out PSNR / SSIM of frames rendered at their own pose and time (mean appearance), PSNR
     inside the person boxes (``box_psnr``: where the scene moves) and outside them (``bg_psnr``:
-    the static background), the boxes' pixel fraction, and mask box IoU."""
+    the static background), the boxes' pixel fraction, and the mask's boxes (synthesis rules,
+    ``boxes_from_probabilities``): IoU of the best box per label box >= ``min_box_px``, and recall /
+    precision at IoU >= 0.5 (same class) for people >= ``min_box_px`` tall."""
     import cv2
 
     data = dd.data
     t01 = dd.t01()
     rows, ious, box_err, bg_err = [], [], [], []
+    agreement = None  # synthesis-style matching: IoU >= 0.5, same class, people >= min_box_px tall
     for i in indices:
         r = model.render_image(data.camera, data.cam_from_world[i], float(t01[i]))
         gt = data.images[i].numpy()
@@ -290,8 +309,14 @@ def evaluate_dynamic(model: DynamicModel, dd: DynamicFlightData, indices: list[i
         if bool(data.has_mask[i]):
             truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]
                      if min(x1 - x0, y1 - y0) >= min_box_px]
-            found = match_boxes(truth, boxes_from_mask(r["mask"]))
+            predicted = boxes_from_probabilities(r["mask_probs"])  # the synthesis rules
+            found = match_boxes(truth, predicted)
             ious += found
+            every_truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]]
+            matched = match_detections(predicted, every_truth, min_truth_height_px=min_box_px)
+            agreement = matched if agreement is None else agreement + matched
+            row["boxes"] = len(predicted)
+            row["max_foreground"] = float(1.0 - r["mask_probs"][..., 0].min())
         rows.append(row)
         if out_dir:
             out_dir.mkdir(parents=True, exist_ok=True)
@@ -302,7 +327,10 @@ def evaluate_dynamic(model: DynamicModel, dd: DynamicFlightData, indices: list[i
             "ssim": float(np.mean([r["ssim"] for r in rows])) if rows else None,
             "box_psnr": _pooled_psnr(box_err), "bg_psnr": _pooled_psnr(bg_err),
             "box_fraction": float(np.mean([r["box_fraction"] for r in rows])) if rows else None,
-            "box_iou_mean": float(np.mean(ious)) if ious else None, "boxes_evaluated": len(ious)}
+            "box_iou_mean": float(np.mean(ious)) if ious else None, "boxes_evaluated": len(ious),
+            "box_iou_ge_0.5": float(np.mean(np.asarray(ious) >= 0.5)) if ious else None,
+            "mask_recall": agreement.recall if agreement else None,
+            "mask_precision": agreement.precision if agreement else None}
 
 
 def _pooled_psnr(mse_per_frame: list[float]) -> float | None:

@@ -101,6 +101,17 @@ class FieldConfig:
         return cls(**d)
 
 
+def init_background_bias(layer: nn.Linear, p_background: float) -> None:
+    """Set a mask head's output bias so that its softmax starts at ``p_background`` on channel 0
+    (background) and shares the rest equally among the classes; the weights are left as they are,
+    so the start is that distribution plus the head's small random variation."""
+    n_classes = layer.out_features - 1
+    p0 = min(max(float(p_background), 1e-6), 1.0 - 1e-6)
+    with torch.no_grad():
+        layer.bias.zero_()
+        layer.bias[0] = math.log(p0 * n_classes / (1.0 - p0))
+
+
 class StaticField(nn.Module):
     """Density, colour and mask logits at world points; see the module docstring."""
 
@@ -129,11 +140,7 @@ class StaticField(nn.Module):
             raise ValueError(f"unknown mask_encoding {config.mask_encoding!r}; expected 'grid' or 'geometry'")
         self.mask_head = nn.Sequential(nn.Linear(mask_in, 32), nn.ReLU(), nn.Linear(32, config.n_classes + 1))
         if config.mask_init_background is not None:
-            with torch.no_grad():
-                p0 = min(max(config.mask_init_background, 1e-6), 1.0 - 1e-6)
-                bias = self.mask_head[-1].bias
-                bias.zero_()
-                bias[0] = math.log(p0 * config.n_classes / (1.0 - p0))  # softmax: background p0, classes equal
+            init_background_bias(self.mask_head[-1], config.mask_init_background)
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         """World ENU metres -> [0, 1]^3 of the scene box (not clamped)."""

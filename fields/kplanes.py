@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from fields.field import init_background_bias
+
 #: coordinate index pairs of the spatial planes (x=0, y=1, z=2) and the time planes (t=3)
 SPACE_PLANES = ((0, 1), (0, 2), (1, 2))
 TIME_PLANES = ((0, 3), (1, 3), (2, 3))
@@ -262,6 +264,9 @@ class KPlanesFieldConfig:
     appearance_dim: int = 8
     n_classes: int = 3
     density_bias: float = -1.0
+    #: background probability of the fresh class-mask head (None: torch's default, ~uniform, i.e.
+    #: every place starts 75 % "person"; see :func:`fields.field.init_background_bias`)
+    mask_init_background: float | None = None
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -304,6 +309,8 @@ class KPlanesField(nn.Module):
         # the mask head reads the geometry features but cannot change them (detached input): a mask
         # loss reaching the shared features carved the density in the static field (bench/RESULTS.md)
         self.mask_head = nn.Sequential(nn.Linear(config.geo_features, h), nn.ReLU(), nn.Linear(h, config.n_classes + 1))
+        if config.mask_init_background is not None:
+            init_background_bias(self.mask_head[-1], config.mask_init_background)
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         return (points - self.lo) / (self.hi - self.lo)

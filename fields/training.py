@@ -266,7 +266,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     scaler = torch.amp.GradScaler("cuda") if use_amp else None
     fg_w = torch.ones(len(data.classes) + 1, device=dev)
     fg_w[1:] = cfg.mask_fg_weight
-    pos_frame, pos_pixel = _positive_pixels(masks, has_mask, train_t)
+    pos_frame, pos_pixel = positive_pixels(masks, has_mask, train_t)
     mask_frames = train_t[has_mask[train_t]]
     # the mask-only phase: the last ``mask_phase_share`` of the budget (seconds, or iterations without one)
     share = cfg.mask_phase_share if cfg.lambda_mask > 0 and len(mask_frames) else 0.0
@@ -274,7 +274,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     main_budget = cfg.budget_s * (1.0 - share) if cfg.budget_s else None
     joint_mask = cfg.lambda_mask > 0 and (cfg.mask_joint or share == 0)
     n_pos = int(round(cfg.mask_pos_fraction * cfg.batch_rays)) if joint_mask and len(pos_frame) else 0
-    iw = _importance_weights(cfg.batch_rays, n_pos, len(train_idx) * hw, len(pos_frame), dev)
+    iw = importance_weights(cfg.batch_rays, n_pos, len(train_idx) * hw, len(pos_frame), dev)
     evals_s = sorted(eval_at_s or [])
     evals_i = sorted(eval_at_iters or [])
 
@@ -377,7 +377,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         n_box = int(round(cfg.mask_phase_pos_fraction * cfg.mask_phase_rays)) if len(pos_frame) else 0
         fi, pi = draw(mask_frames, cfg.mask_phase_rays, n_box)
         cache = _MaskCache(model, bank, fi, pi, masks,
-                           _importance_weights(cfg.mask_phase_rays, n_box, len(mask_frames) * hw, len(pos_frame), dev),
+                           importance_weights(cfg.mask_phase_rays, n_box, len(mask_frames) * hw, len(pos_frame), dev),
                            fg_w)
         params = list(model.field.mask_head.parameters())
         params += list(model.field.mask_grid.parameters()) if model.field.mask_grid is not None else []
@@ -439,7 +439,7 @@ class _MaskCache:
         return _mask_nll(self.probs(model, rays), self.target[rays], self.weight[rays])
 
 
-def _importance_weights(batch: int, n_box: int, n_all: int, n_pos: int, dev) -> torch.Tensor:
+def importance_weights(batch: int, n_box: int, n_all: int, n_pos: int, dev) -> torch.Tensor:
     """Loss weights (background pixel, box pixel) that keep the mask loss unbiased when ``n_box`` of
     ``batch`` rays are drawn from the ``n_pos`` box pixels and the rest uniformly from ``n_all``
     pixels: the mixture draws a box pixel with probability (B_u/B)/N + (B_p/B)/N_pos, a background
@@ -454,7 +454,7 @@ def _mask_nll(probs: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) 
     return (nll * weights).mean()
 
 
-def _positive_pixels(masks: torch.Tensor, has_mask: torch.Tensor, train_t: torch.Tensor):
+def positive_pixels(masks: torch.Tensor, has_mask: torch.Tensor, train_t: torch.Tensor):
     """(frame, pixel) indices of the training pixels inside label boxes (mask class > 0)."""
     sel = train_t[has_mask[train_t]]
     fr, px = (masks[sel] > 0).nonzero(as_tuple=True)

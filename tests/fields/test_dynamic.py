@@ -319,3 +319,57 @@ def test_model_rejects_mismatched_kind(dynamic_flight):
     m = _model(dd, "kplanes")
     with pytest.raises(ValueError, match="does not match"):
         DynamicModel("kplanes-ext", m.field_config, m.sampler_config, 0.0, 10.0)
+
+
+# ---- the class mask (synthetic labels come from it) -------------------------------------------
+def test_a_fresh_kplanes_mask_can_start_as_background(dynamic_flight):
+    """``mask_init_background``: an untrained dynamic field renders no boxes; torch's default start
+    (~uniform over 4 outputs) renders foreground 0.75 wherever the field is opaque."""
+    from fields.dynamic_training import build_model
+    from fields.mask_boxes import boxes_from_probabilities
+
+    dd = load_dynamic_flight(dynamic_flight)
+    cam = dd.data.camera.scaled(0.5)
+    for start, blobs in ((0.99, False), (None, True)):
+        cfg = DynamicFitConfig(kind="kplanes-ext", mask_init_background=start, **TINY)
+        torch.manual_seed(0)
+        model, _, _ = build_model(dd, list(range(dd.n)), cfg, None)
+        probs = model.eval().render_image(cam, dd.data.cam_from_world[0], 0.5)["mask_probs"]
+        assert probs.shape == (cam.height, cam.width, 4)
+        assert np.allclose(probs.sum(-1), 1.0, atol=1e-5)
+        assert bool(boxes_from_probabilities(probs)) == blobs
+        if start is not None:
+            assert probs[..., 0].min() > 0.97
+
+
+def test_box_rays_fit_stays_finite_and_weights_the_mask_losses(dynamic_flight):
+    dd = load_dynamic_flight(dynamic_flight)
+    cfg = DynamicFitConfig(kind="kplanes-ext", box_ray_fraction=0.5, mask_init_background=0.99, **TINY)
+    r = fit_dynamic(dd, cfg)
+    assert r.step == 3 and all(torch.isfinite(p).all() for p in r.model.parameters())
+
+
+def test_heldout_mask_boxes_of_a_perfect_mask_match_every_separate_person(dynamic_flight):
+    """evaluate_dynamic's box scores on a stand-in model that renders the frame itself and its
+    filled label boxes as a hard mask: every person whose box touches no other is found exactly."""
+    from scipy import ndimage
+
+    dd = load_dynamic_flight(dynamic_flight)
+    data = dd.data
+
+    class Perfect:
+        def render_image(self, camera, cam_from_world, time01):
+            i = next(k for k in range(data.n) if np.array_equal(data.cam_from_world[k], cam_from_world))
+            m = data.masks[i].numpy().astype(int)
+            return {"rgb": data.images[i].numpy() / 255.0, "mask_probs": np.eye(4, dtype=np.float32)[m]}
+
+    def separate(i):
+        n_blobs = ndimage.label(data.masks[i].numpy() > 0, structure=np.ones((3, 3)))[1]
+        return bool(data.boxes[i]) and n_blobs == len(data.boxes[i])
+
+    frames = [i for i in range(data.n) if separate(i)]
+    assert frames, "the tiny flight should have a frame whose people do not touch"
+    ev = evaluate_dynamic(Perfect(), dd, frames, min_box_px=2.0)
+    assert ev["box_iou_mean"] == pytest.approx(1.0, abs=1e-3)  # label edges are sub-pixel
+    assert ev["mask_recall"] == 1.0 and ev["mask_precision"] == 1.0
+    assert ev["psnr"] > 60

@@ -2,12 +2,13 @@
 the mask-positive ray oversampling."""
 
 import numpy as np
+import pytest
 import torch
 
 from fields.data import load_flight
 from fields.field import FieldConfig
 from fields.model import SamplerConfig, StaticModel
-from fields.training import FitConfig, _positive_pixels, build_model, fit
+from fields.training import FitConfig, build_model, fit, positive_pixels
 from telemetry.camera import Camera, Mount
 from telemetry.frames import orbit_pose
 
@@ -102,7 +103,7 @@ def test_positive_pixels_only_inside_boxes_of_labelled_training_frames():
     masks[1, 3, 4] = 2
     masks[2, 0, 0] = 3
     has = torch.tensor([True, False, True])
-    fr, px = _positive_pixels(masks.view(3, -1), has, torch.tensor([0, 1]))
+    fr, px = positive_pixels(masks.view(3, -1), has, torch.tensor([0, 1]))
     assert fr.tolist() == [0] and px.tolist() == [1 * 5 + 2]
 
 
@@ -116,3 +117,20 @@ def test_mask_budget_and_oversampled_fit(tiny_flight):
     assert any("mask grid" in r for r in sizing.reasoning)
     res = fit(d, cfg)
     assert res.step == 15 and all(torch.isfinite(p).all() for p in res.model.parameters())
+
+
+def test_importance_weights_keep_the_loss_unbiased():
+    """Drawing n_box of B rays from the box pixels: the weighted batch mean has the same expectation
+    as the plain mean over all pixels (exact expectation over the sampling mixture)."""
+    from fields.training import importance_weights
+
+    gen = torch.Generator().manual_seed(0)
+    loss = torch.rand(1000, generator=gen, dtype=torch.float64)
+    pos = torch.zeros(1000, dtype=torch.bool)
+    pos[:37] = True
+    for batch, n_box in ((1024, 0), (1024, 256), (512, 500)):
+        w = importance_weights(batch, n_box, 1000, 37, "cpu").double()
+        n_uni = batch - n_box
+        weighted = torch.where(pos, w[1], w[0]) * loss
+        expectation = (n_uni * weighted.mean() + n_box * weighted[pos].mean()) / batch
+        assert float(expectation) == pytest.approx(float(loss.mean()), rel=1e-6)  # float32 weights
