@@ -176,7 +176,8 @@ class DynamicModel(nn.Module):
 
 def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_images: int, n_classes: int,
                       features: int = 16, hidden: int = 64, appearance_dim: int = 8,
-                      mask_init_background: float | None = None) -> KPlanesFieldConfig:
+                      mask_init_background: float | None = None, mask_encoding: str = "geometry"
+                      ) -> KPlanesFieldConfig:
     """Field config for ``kind`` over the slab ``bounds``; time resolution = half the frames."""
     from fields.dynamic_data import time_resolution
 
@@ -185,4 +186,4 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
                            extended=(kind == "kplanes-ext"))
     return KPlanesFieldConfig(aabb_lo=tuple(bounds.lo), aabb_hi=tuple(bounds.hi), planes=planes, hidden=hidden,
                               n_images=n_images, appearance_dim=appearance_dim, n_classes=n_classes,
-                              mask_init_background=mask_init_background)
+                              mask_init_background=mask_init_background, mask_encoding=mask_encoding)

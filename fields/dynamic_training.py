@@ -70,10 +70,14 @@ class DynamicFitConfig:
     mask_fg_weight: float = 4.0
     #: background probability of the fresh class-mask head (None: torch's default, ~uniform)
     mask_init_background: float | None = None
+    #: what the class-mask head reads: "geometry" or "planes" (its own small K-Planes; see
+    #: :class:`fields.kplanes.KPlanesFieldConfig`)
+    mask_encoding: str = "geometry"
     #: share of each ray batch drawn from pixels inside label boxes (people are ~2 % of a frame).
-    #: The mask losses are importance-weighted (unbiased); the colour loss is not, so the people's
-    #: colour and geometry get that share of the colour loss (a bias towards them, as for the
-    #: static field's ``mask_pos_fraction``). Extended: the dynamic planes learn only from these rays.
+    #: Every per-ray loss (colour, class mask, time-plane mask) is importance-weighted, so the
+    #: objective is the uniform one with less variance on the people; for extended K-Planes, whose
+    #: dynamic planes learn from box pixels only, that is ~12x more rays for them at 0.25. (An
+    #: unweighted colour loss cost 2.5 dB held-out at 600 steps: bench/RESULTS.md, session 4.)
     box_ray_fraction: float = 0.0
     lambda_tv: float = 2e-4
     lambda_time_smooth: float = 1e-3
@@ -115,7 +119,7 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     bounds = scene_bounds(flight, data.camera, [data.cam_from_world[i] for i in train_idx])
     sizing = plane_sizing(bounds.extent, bounds.finest_gsd_m, cfg.max_resolution, cfg.cell_factor)
     fc = make_field_config(cfg.kind, bounds, sizing, dd.n, data.n, len(data.classes), cfg.features, cfg.hidden,
-                           cfg.appearance_dim, cfg.mask_init_background)
+                           cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
@@ -225,11 +229,11 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         target = images[fi, pi].float() / 255.0
         cls = masks[fi, pi]
         dyn = (cls > 0).float()
-        mask_w = iw[(cls > 0).long()]  # importance weights of the mask losses (all 1 without box rays)
+        mask_w = iw[(cls > 0).long()]  # importance weights of the per-ray losses (all 1 without box rays)
         gate = dyn if (ext and cfg.gate) else None
         res = model.render_rays(o, d, t01[fi], fi, train=True, with_mask=cfg.lambda_mask > 0, dynamic_gate=gate,
                                 with_features=ext and cfg.lambda_cos > 0, generator=gen)
-        loss_rgb = torch.mean((res["rgb"] - target) ** 2)
+        loss_rgb = torch.mean(((res["rgb"] - target) ** 2).mean(-1) * mask_w)
         loss = loss_rgb + regularisers(model, cfg)
         if cfg.lambda_dist > 0:
             loss = loss + cfg.lambda_dist * model.distortion(res)

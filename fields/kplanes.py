@@ -267,6 +267,13 @@ class KPlanesFieldConfig:
     #: background probability of the fresh class-mask head (None: torch's default, ~uniform, i.e.
     #: every place starts 75 % "person"; see :func:`fields.field.init_background_bias`)
     mask_init_background: float | None = None
+    #: what the class-mask head reads: "geometry" (the detached geometry features; the people must
+    #: be in the density first) or "planes" (its own small stock K-Planes of ``mask_features`` at the
+    #: main planes' resolutions x ``mask_multipliers``, beside the detached geometry features, trained
+    #: by the mask loss only: it can follow a person in (x, y, t) before the density has them)
+    mask_encoding: str = "geometry"
+    mask_features: int = 4
+    mask_multipliers: tuple[int, ...] = (2, 4)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -278,6 +285,8 @@ class KPlanesFieldConfig:
         p["base_resolution"] = tuple(p["base_resolution"])
         p["multipliers"] = tuple(p["multipliers"])
         d["aabb_lo"], d["aabb_hi"] = tuple(d["aabb_lo"]), tuple(d["aabb_hi"])
+        if "mask_multipliers" in d:
+            d["mask_multipliers"] = tuple(d["mask_multipliers"])
         return cls(planes=KPlanesConfig(**p), **d)
 
 
@@ -308,12 +317,31 @@ class KPlanesField(nn.Module):
                                        nn.Linear(h, h), nn.ReLU(), nn.Linear(h, 3))
         # the mask head reads the geometry features but cannot change them (detached input): a mask
         # loss reaching the shared features carved the density in the static field (bench/RESULTS.md)
-        self.mask_head = nn.Sequential(nn.Linear(config.geo_features, h), nn.ReLU(), nn.Linear(h, config.n_classes + 1))
+        mask_in = config.geo_features
+        self.mask_planes = None
+        if config.mask_encoding == "planes":  # built last: the other parameters start as without it
+            pc = config.planes
+            self.mask_planes = KPlanesEncoding(KPlanesConfig(
+                base_resolution=pc.base_resolution, multipliers=tuple(config.mask_multipliers),
+                time_resolution=pc.time_resolution, features=config.mask_features,
+                init_low=pc.init_low, init_high=pc.init_high))
+            mask_in += self.mask_planes.out_dim
+        elif config.mask_encoding != "geometry":
+            raise ValueError(f"unknown mask_encoding {config.mask_encoding!r}; expected 'geometry' or 'planes'")
+        self.mask_head = nn.Sequential(nn.Linear(mask_in, h), nn.ReLU(), nn.Linear(h, config.n_classes + 1))
         if config.mask_init_background is not None:
             init_background_bias(self.mask_head[-1], config.mask_init_background)
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         return (points - self.lo) / (self.hi - self.lo)
+
+    def mask_logits(self, x01: torch.Tensor, times01: torch.Tensor, geo: torch.Tensor) -> torch.Tensor:
+        """Class-mask logits (N, C+1) at normalised points ``x01`` (N,3) and times (N,), from the
+        geometry features ``geo`` (N,G), detached: the mask reads the geometry, never changes it."""
+        inputs = geo.detach()
+        if self.mask_planes is not None:
+            inputs = torch.cat([inputs, self.mask_planes(x01, times01)["features"]], dim=-1)
+        return self.mask_head(inputs).float()
 
     def forward(self, points, times01, dirs=None, image_idx=None, dynamic_gate=None, with_mask=True) -> dict:
         x01 = self.normalise(points)
@@ -332,7 +360,7 @@ class KPlanesField(nn.Module):
         rgb = torch.sigmoid(self.color_mlp(torch.cat([geo, app], dim=-1)).float())
         out = {"sigma": sigma, "rgb": rgb}
         if with_mask:
-            out["mask_logits"] = self.mask_head(geo.detach()).float()
+            out["mask_logits"] = self.mask_logits(x01, times01, geo)
         if self.config.planes.extended:
             out["dynamic_prob"] = torch.sigmoid(enc["mask_values"].mean(dim=-1))
             out["static_space"] = enc["static_space"]

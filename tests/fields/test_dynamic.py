@@ -373,3 +373,33 @@ def test_heldout_mask_boxes_of_a_perfect_mask_match_every_separate_person(dynami
     assert ev["box_iou_mean"] == pytest.approx(1.0, abs=1e-3)  # label edges are sub-pixel
     assert ev["mask_recall"] == 1.0 and ev["mask_precision"] == 1.0
     assert ev["psnr"] > 60
+
+
+def test_mask_planes_read_the_geometry_and_never_change_it(dynamic_flight):
+    """``mask_encoding="planes"``: same seed, same colour and density after training as without the
+    mask planes (the mask is composited with detached weights on its own planes), and the mask
+    planes move only through the mask loss."""
+    dd = load_dynamic_flight(dynamic_flight)
+    cam = dd.data.camera.scaled(0.5)
+    renders = {}
+    for enc in ("geometry", "planes"):
+        torch.manual_seed(0)
+        cfg = DynamicFitConfig(kind="kplanes-ext", mask_encoding=enc, mask_init_background=0.99,
+                               box_ray_fraction=0.25, **TINY)
+        r = fit_dynamic(dd, cfg)
+        renders[enc] = r.model.render_image(cam, dd.data.cam_from_world[2], 0.4)
+        if enc == "planes":
+            model = r.model
+    assert np.allclose(renders["geometry"]["rgb"], renders["planes"]["rgb"], atol=1e-6)
+    assert renders["planes"]["mask_probs"].shape[-1] == 4
+    from fields.data import RayBank
+
+    bank = RayBank(dd.data.camera, dd.data.cam_from_world)
+    o, d = bank.rays(torch.zeros(64, dtype=torch.long), torch.randint(bank.hw, (64,)))
+    model.train()
+    res = model.render_rays(o, d, torch.full((64,), 0.5), with_mask=True)
+    model.zero_grad()
+    res["rgb"].sum().backward(retain_graph=True)
+    assert all(p.grad is None or float(p.grad.abs().sum()) == 0.0 for p in model.field.mask_planes.parameters())
+    res["mask_probs"][:, 1:].sum().backward()
+    assert sum(float(p.grad.abs().sum()) for p in model.field.mask_planes.parameters() if p.grad is not None) > 0
