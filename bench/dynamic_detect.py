@@ -37,8 +37,9 @@ def time_split(samples: list) -> dict[str, list]:
     return {"train": samples[0::2], "val": samples[1::4], "test": samples[3::4]}
 
 
-def fit_field(flight: Path, budget_s: float, seed: int) -> dict:
-    """Extended K-Planes on the even frames (kept when ``derived/fields/dynamic.pt`` and its summary exist)."""
+def fit_field(flight: Path, budget_s: float | None, seed: int, iters: int | None = None) -> dict:
+    """Extended K-Planes on the even frames for ``budget_s`` seconds or ``iters`` steps (kept when
+    ``derived/fields/dynamic.pt`` and its summary exist)."""
     import json
 
     from fields.dynamic_cli import fit_dynamic_flight
@@ -47,7 +48,11 @@ def fit_field(flight: Path, budget_s: float, seed: int) -> dict:
     summary = out / "bench_fit.json"
     if (out / "dynamic.pt").is_file() and summary.is_file():
         return json.loads(summary.read_text())
-    info = fit_dynamic_flight(flight, out, "kplanes-ext", budget_s=budget_s, holdout_every=2, seed=seed)
+    t = time.perf_counter()
+    info = fit_dynamic_flight(flight, out, "kplanes-ext", budget_s=None if iters else budget_s, iters=iters,
+                              holdout_every=2, seed=seed)
+    info["stage_s"] = round(time.perf_counter() - t, 1)
+    info["load_end"] = load_avg()
     summary.write_text(json.dumps(info, indent=1) + "\n")
     return info
 
@@ -57,6 +62,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=80)
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--fit-budget-s", type=float, default=300.0)
+    ap.add_argument("--fit-iters", type=int, default=None,
+                    help="fit for this many steps instead of the budget (comparable under any load)")
+    ap.add_argument("--fit-only", action="store_true", help="stop after the field (cached for the next run)")
     ap.add_argument("--epochs", type=int, default=15)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--imgsz", type=int, default=320)
@@ -89,10 +97,10 @@ def main() -> None:
     load_start = load_avg()
     print(f"flight {flight}; base {base or 'none (from scratch)'}; {load_start}", flush=True)
 
-    t = time.perf_counter()
-    field = fit_field(flight, args.fit_budget_s, args.seed)
-    field["stage_s"] = round(time.perf_counter() - t, 1)
+    field = fit_field(flight, args.fit_budget_s, args.seed, args.fit_iters)
     print(f"field: {field}", flush=True)
+    if args.fit_only:
+        return
 
     names = read_class_names(flight / "classes.txt")
     real = time_split(labelled_samples(flight / "frames", flight / "labels"))

@@ -1,8 +1,10 @@
 """Fitting a dynamic model (stock or extended K-Planes) to a timed flight; checkpoint and evaluation.
 
 Both kinds train with the same options (:class:`DynamicFitConfig`) and stop on the same iteration
-count or wall-clock budget. Rays are drawn uniformly over (training frame, pixel); each carries its
-frame's normalised time and whether its pixel lies inside a labelled person box ("dynamic").
+count or wall-clock budget. Rays are drawn uniformly over (training frame, pixel), except a share
+``box_ray_fraction`` drawn from pixels inside label boxes, with every per-ray loss importance-weighted
+so the objective stays the uniform one; each ray carries its frame's normalised time and whether
+its pixel lies inside a labelled person box ("dynamic").
 
 Losses (both kinds): MSE on RGB; ``lambda_dist`` x distortion; ``lambda_mask`` x the class-mask NLL
 (filled boxes, as the static fit, for synthesis); K-Planes regularisers ``lambda_tv`` x spatial
@@ -68,17 +70,18 @@ class DynamicFitConfig:
     lambda_dist: float = 2e-3
     lambda_mask: float = 0.05
     mask_fg_weight: float = 4.0
-    #: background probability of the fresh class-mask head (None: torch's default, ~uniform)
-    mask_init_background: float | None = None
+    #: background probability of the fresh class-mask head (None: torch's default, ~uniform, i.e.
+    #: 75 % "person" wherever no mask ray has been yet)
+    mask_init_background: float | None = 0.99
     #: what the class-mask head reads: "geometry" or "planes" (its own small K-Planes; see
     #: :class:`fields.kplanes.KPlanesFieldConfig`)
-    mask_encoding: str = "geometry"
+    mask_encoding: str = "planes"
     #: share of each ray batch drawn from pixels inside label boxes (people are ~2 % of a frame).
     #: Every per-ray loss (colour, class mask, time-plane mask) is importance-weighted, so the
     #: objective is the uniform one with less variance on the people; for extended K-Planes, whose
     #: dynamic planes learn from box pixels only, that is ~12x more rays for them at 0.25. (An
     #: unweighted colour loss cost 2.5 dB held-out at 600 steps: bench/RESULTS.md, session 4.)
-    box_ray_fraction: float = 0.0
+    box_ray_fraction: float = 0.25
     lambda_tv: float = 2e-4
     lambda_time_smooth: float = 1e-3
     lambda_time_l1: float = 1e-4

@@ -319,7 +319,7 @@ class KPlanesField(nn.Module):
         # loss reaching the shared features carved the density in the static field (bench/RESULTS.md)
         mask_in = config.geo_features
         self.mask_planes = None
-        if config.mask_encoding == "planes":  # built last: the other parameters start as without it
+        if config.mask_encoding == "planes":  # built after density and colour: those start as without it
             pc = config.planes
             self.mask_planes = KPlanesEncoding(KPlanesConfig(
                 base_resolution=pc.base_resolution, multipliers=tuple(config.mask_multipliers),
