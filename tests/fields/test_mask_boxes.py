@@ -59,6 +59,32 @@ def test_faint_blobs_below_min_score_are_dropped():
     assert [(b.x0, b.y0, round(b.score, 2)) for b in boxes] == [(10, 10, 0.9)]
 
 
+def test_relative_threshold_puts_each_blob_edge_at_a_share_of_its_peak():
+    p = _mask(30, 40)
+    _paint(p, 4, 12, 4, 12, cls=0, value=0.35)  # halo ring around a faint person
+    _paint(p, 5, 11, 5, 11, cls=0, value=0.6)  # faint person: peak 0.6
+    _paint(p, 4, 12, 24, 32, cls=0, value=0.35)  # the same halo around a sharp person
+    _paint(p, 5, 11, 25, 31, cls=0, value=0.95)  # sharp person: peak 0.95
+
+    def extents(rules):
+        return sorted((b.x0, b.y0, b.x1, b.y1) for b in boxes_from_probabilities(p, rules))
+
+    # absolute threshold 0.3: both blobs take the halo
+    assert extents(BoxRules(threshold=0.3)) == [(4, 4, 12, 12), (24, 4, 32, 12)]
+    # half of each peak: the faint person keeps the 0.35 ring (>= 0.30), the sharp one drops it (< 0.475)
+    assert extents(BoxRules(threshold=0.3, relative_threshold=0.5)) == [(4, 4, 12, 12), (25, 5, 31, 11)]
+
+
+def test_relative_threshold_separates_people_joined_by_a_faint_bridge():
+    p = _mask(20, 30)
+    _paint(p, 5, 12, 4, 10, cls=0, value=0.95)
+    _paint(p, 5, 12, 13, 19, cls=0, value=0.9)
+    _paint(p, 5, 12, 10, 13, cls=0, value=0.7)  # a faint band between them: too shallow a dip (0.2) to split
+    assert len(boxes_from_probabilities(p)) == 1
+    boxes = sorted(boxes_from_probabilities(p, BoxRules(relative_threshold=0.8)), key=lambda b: b.x0)
+    assert [(b.x0, b.x1) for b in boxes] == [(4, 10), (13, 19)]
+
+
 def test_blob_cut_by_border_dropped_only_beyond_the_threshold():
     p = _mask(30, 30)
     _paint(p, 10, 13, 0, 3, cls=0)  # mostly outside the frame: 3 px of an expected 12
