@@ -44,6 +44,9 @@ CONFIGS = {
                            "mask_init_background": 0.99},
     "hash-strat-bgstart-pos25": {"encoding": "hash", "sampler": "stratified", "n_samples": 32,
                                  "mask_pos_fraction": 0.25, "mask_init_background": 0.99},
+    # bgstart + the mask grid and head at 3x the learning rate (a speckled, unconverged mask at 300 s)
+    "hash-strat-bgstart-masklr3": {"encoding": "hash", "sampler": "stratified", "n_samples": 32,
+                                   "mask_pos_fraction": 0.0, "mask_init_background": 0.99, "mask_lr_scale": 3.0},
     "hash-strat-bg384": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "background_resolution": 384},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
@@ -232,7 +235,7 @@ def save_masks(name: str, probs: dict, data) -> Path:
     saved = {}
     for i, prob in probs.items():
         saved[f"prob_{i}"] = prob
-        saved[f"truth_{i}"] = np.array(data.boxes[i], np.float32).reshape(-1, 5)
+        saved[f"truth_{i}"] = np.array(data.boxes[i], np.float64).reshape(-1, 5)
     path = OUT_DIR / f"fields_masks_{name}.npz"
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, **saved)
@@ -251,7 +254,7 @@ def score_masks(saved, rules, min_box_px: float = 6.0) -> dict:
     ious, total, pred_n = [], BoxMatch(0, 0, 0, []), 0
     for key in sorted(k for k in saved.files if k.startswith("prob_")):
         i = key.split("_", 1)[1]
-        truth = [MaskBox(int(c), int(x0), int(y0), int(x1), int(y1), 0, 1.0)
+        truth = [MaskBox(int(c), float(x0), float(y0), float(x1), float(y1), 0, 1.0)  # label edges (float px)
                  for c, x0, y0, x1, y1 in saved[f"truth_{i}"]]
         pred = boxes_from_probabilities(saved[key].astype(np.float32), rules)
         pred_n += len(pred)

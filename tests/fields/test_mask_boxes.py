@@ -111,11 +111,25 @@ def test_two_touching_people_of_one_class_are_split_at_the_dip():
     p[..., 0] = 1 - value
     p[..., 1] = value
     assert (value[10, 8:18] >= 0.5).all()  # one connected blob at the threshold
-    boxes = sorted(boxes_from_probabilities(p), key=lambda b: b.x0)
+    assert len(boxes_from_probabilities(p)) == 1  # the peak split is off by default
+    boxes = sorted(boxes_from_probabilities(p, BoxRules(peak_dip=0.3)), key=lambda b: b.x0)
     assert len(boxes) == 2
     assert boxes[0].x1 <= boxes[1].x0 + 1
     assert abs((boxes[0].x0 + boxes[0].x1) / 2 - 8.5) <= 1.5
     assert abs((boxes[1].x0 + boxes[1].x1) / 2 - 17.5) <= 1.5
+
+
+def test_a_speckled_person_is_one_box_after_closing():
+    p = _mask(40, 30)
+    for r0 in (5, 10, 15, 20):  # a standing person rendered as a column of fragments, 2 px gaps
+        _paint(p, r0, r0 + 3, 12, 16, cls=0, value=0.8)
+    (b,) = boxes_from_probabilities(p)  # default close_px=2 joins gaps up to 4 px
+    assert (b.x0, b.y0, b.x1, b.y1) == (12, 5, 16, 23)
+    assert len(boxes_from_probabilities(p, BoxRules(close_px=0))) == 4
+    q = _mask(40, 30)
+    _paint(q, 5, 20, 5, 9, cls=0)
+    _paint(q, 5, 20, 15, 19, cls=0)  # 6 px apart: stays two people
+    assert len(boxes_from_probabilities(q)) == 2
 
 
 def test_a_plateau_person_is_not_split():
