@@ -5,12 +5,17 @@ every 8th held out) written as a recorded flight with true poses (fields.simscen
 configuration: fit with a wall-clock budget; at fractions of the budget, PSNR on held-out 15 m
 frames and against simulator truth at 35 m (radius 15, pitch -70) and 50 m (radius 10, pitch -80),
 4 azimuths each; full-frame PSNR and "covered" PSNR (pixels whose ground point was seen by >= 2
-training frames). At the end, mask box IoU on held-out frames (people >= 6 px) and the model is saved
-as bench/out/fields_CONFIG.pt (input of bench/synthesis.py). Evaluation renders
+training frames). At the end, mask box IoU on all held-out frames at full resolution (label boxes
+>= 6 px on their shorter side; ``evaluate_frames``), the rendered masks are kept in
+bench/out/fields_masks_CONFIG.npz and the model is saved as bench/out/fields_CONFIG.pt (input of
+bench/synthesis.py). ``--rescore RULES`` scores other ``BoxRules`` on the kept masks without
+rendering (the 15 m box IoU, and one-to-one recall / precision for people >= 6 px tall as
+bench/synthesis.py scores its views). Evaluation renders
 at half resolution (160x120, truth area-averaged from 320x240) to keep the benchmark affordable
 on a busy 2-core machine; evaluation time is not counted as training time.
 
     python bench/fields.py [--budget-s 300] [--configs hash-strat,hash-occ,planes-strat,planes-occ]
+    python bench/fields.py --configs hash-strat --rescore threshold=0.4,relative_threshold=0.5
 """
 
 from __future__ import annotations
@@ -34,6 +39,14 @@ CONFIGS = {
     # the `fit` default (FitConfig); pos25 gives better 15 m mask boxes but worse 35/50 m synthesis precision
     "hash-strat": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.0},
     "hash-strat-pos25": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.25},
+    # the fresh mask head starts as background (0.99) instead of ~75 % foreground everywhere
+    "hash-strat-bgstart": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.0,
+                           "mask_init_background": 0.99},
+    "hash-strat-bgstart-pos25": {"encoding": "hash", "sampler": "stratified", "n_samples": 32,
+                                 "mask_pos_fraction": 0.25, "mask_init_background": 0.99},
+    # bgstart + the mask grid and head at 3x the learning rate (a speckled, unconverged mask at 300 s)
+    "hash-strat-bgstart-masklr3": {"encoding": "hash", "sampler": "stratified", "n_samples": 32,
+                                   "mask_pos_fraction": 0.0, "mask_init_background": 0.99, "mask_lr_scale": 3.0},
     "hash-strat-bg384": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "background_resolution": 384},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
@@ -118,7 +131,14 @@ def main() -> None:
     ap.add_argument("--evaluate", action="store_true",
                     help="no training: evaluate the saved bench/out/fields_CONFIG.pt models (mask IoU on all "
                          "held-out frames)")
+    ap.add_argument("--rescore", action="append", default=[],
+                    help="no rendering: BoxRules overrides key=value,... scored on the masks kept in "
+                         "bench/out/fields_masks_CONFIG.npz (repeatable; '' = the defaults)")
     args = ap.parse_args()
+    if args.rescore:
+        for name in args.configs.split(","):
+            rescore_masks(name, args.rescore)
+        return
 
     import torch
 
@@ -178,7 +198,8 @@ def main() -> None:
         if args.evaluate:
             model, ck = load_checkpoint(OUT_DIR / f"fields_{name}.pt", "cpu")
             on_eval(model, ck["step"], ck["train_s"])
-            masks = evaluate_frames(model, data, test_idx)
+            masks = evaluate_frames(model, data, test_idx, keep_probs=True)
+            save_masks(name, masks.pop("mask_probs"), data)
             results.append({"config": name, "steps": ck["step"], "train_s": ck["train_s"], "points": points,
                             "mask_box_iou_mean": masks["box_iou_mean"], "mask_box_iou_ge_0.5": masks["box_iou_ge_0.5"],
                             "mask_boxes": masks["boxes_evaluated"], "heldout15_full_res_psnr": masks["psnr"]})
@@ -189,13 +210,14 @@ def main() -> None:
         res = fit(data, cfg, on_eval=on_eval, eval_at_s=[f * args.budget_s for f in fractions[:-1]])
         on_eval(res.model, res.step, res.train_s)
         save_checkpoint(OUT_DIR / f"fields_{name}.pt", res.model, None, res.step, res.train_s, cfg, {})
-        masks = evaluate_frames(res.model, data, test_idx[:3])  # full resolution, 3 frames
+        masks = evaluate_frames(res.model, data, test_idx, keep_probs=True)  # full resolution, all held out
+        save_masks(name, masks.pop("mask_probs"), data)
         n = res.model.param_count()
         results.append({"config": name, **spec, "params": n, "mb": round(n * 4 / 1e6, 2), "steps": res.step,
                         "train_s": round(res.train_s, 1), "s_per_step": round(res.train_s / max(res.step, 1), 3),
                         "points": points, "mask_box_iou_mean": masks["box_iou_mean"],
                         "mask_box_iou_ge_0.5": masks["box_iou_ge_0.5"], "mask_boxes": masks["boxes_evaluated"],
-                        "heldout15_full_res_psnr_3frames": masks["psnr"],
+                        "heldout15_full_res_psnr": masks["psnr"], "mask_frames": len(test_idx),
                         "sizing": res.sizing.reasoning if res.sizing else None})
         print(f"{name}: {res.step} steps, {n} params ({n * 4 / 1e6:.1f} MB), mask IoU {masks['box_iou_mean']}",
               flush=True)
@@ -206,6 +228,53 @@ def main() -> None:
         return
     plot(results)
     print(f"wrote {path} and {OUT_DIR / 'fields.png'}")
+
+
+def save_masks(name: str, probs: dict, data) -> Path:
+    """Keep the rendered held-out masks and their label boxes (pixel edges) for ``--rescore``."""
+    saved = {}
+    for i, prob in probs.items():
+        saved[f"prob_{i}"] = prob
+        saved[f"truth_{i}"] = np.array(data.boxes[i], np.float64).reshape(-1, 5)
+    path = OUT_DIR / f"fields_masks_{name}.npz"
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **saved)
+    return path
+
+
+def score_masks(saved, rules, min_box_px: float = 6.0) -> dict:
+    """Box scores of ``rules`` on kept masks: the ``evaluate_frames`` box IoU (best blob per label box
+    >= ``min_box_px`` on its shorter side, any class) and one-to-one recall / precision / mean IoU at
+    IoU >= 0.5, same class, people >= ``min_box_px`` tall (the bench/synthesis.py measure)."""
+    from fields.evaluation import MaskBox, match_boxes
+    from fields.mask_boxes import boxes_from_probabilities
+    from fields.synthesis import BoxMatch
+    from fields.synthesis import match_boxes as match_one_to_one
+
+    ious, total, pred_n = [], BoxMatch(0, 0, 0, []), 0
+    for key in sorted(k for k in saved.files if k.startswith("prob_")):
+        i = key.split("_", 1)[1]
+        truth = [MaskBox(int(c), float(x0), float(y0), float(x1), float(y1), 0, 1.0)  # label edges (float px)
+                 for c, x0, y0, x1, y1 in saved[f"truth_{i}"]]
+        pred = boxes_from_probabilities(saved[key].astype(np.float32), rules)
+        pred_n += len(pred)
+        ious += match_boxes([t for t in truth if min(t.x1 - t.x0, t.y1 - t.y0) >= min_box_px], pred)
+        total = total + match_one_to_one(pred, truth, 0.5, min_box_px)
+    return {"box_iou_mean": round(float(np.mean(ious)), 3) if ious else None,
+            "box_iou_ge_0.5": round(float(np.mean(np.asarray(ious) >= 0.5)), 3) if ious else None,
+            "boxes_evaluated": len(ious), "pred_boxes": pred_n, "recall": round(total.recall, 3),
+            "precision": round(total.precision, 3), "mean_iou": round(total.mean_iou, 3)}
+
+
+def rescore_masks(name: str, rule_texts: list[str]) -> None:
+    """Print ``score_masks`` for each ``key=value,...`` set of BoxRules overrides."""
+    from bench.fields_ab import parse_variant
+    from fields.mask_boxes import BoxRules
+
+    saved = np.load(OUT_DIR / f"fields_masks_{name}.npz")
+    for text in rule_texts:
+        _, over = parse_variant(":" + text)
+        print(json.dumps({"config": name, "rules": over, **score_masks(saved, BoxRules(**over))}), flush=True)
 
 
 def plot(results: list[dict]) -> None:

@@ -15,7 +15,7 @@ threads.
     python bench/synthesis.py [--config hash-strat] [--count 8] [--size 640x480]
     python bench/synthesis.py --rescore threshold=0.6,min_score=0.6   # box rules on the saved masks
 
-Every run keeps the rendered masks and true boxes in ``bench/out/synthesis_probs.npz``;
+Every run keeps the rendered masks and true boxes in ``bench/out/synthesis_probs.npz`` (``--probs``);
 ``--rescore RULES`` (``BoxRules`` fields) scores other box rules on them without rendering.
 """
 
@@ -61,11 +61,13 @@ def main() -> None:
     ap.add_argument("--min-height-px", type=float, default=6.0)
     ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--probs", type=Path, default=OUT_DIR / "synthesis_probs.npz",
+                    help="where this run keeps its masks and true boxes (and what --rescore reads)")
     ap.add_argument("--rescore", action="append", default=[],
                     help="no rendering: BoxRules overrides key=value,... scored on the saved masks (repeatable)")
     args = ap.parse_args()
     if args.rescore:
-        rescore(args.rescore, args.min_height_px)
+        rescore(args.rescore, args.min_height_px, args.probs)
         return
 
     import torch
@@ -146,7 +148,8 @@ def main() -> None:
         a["any"] = a["any"] + m_any
         a["psnr"].append(row["psnr"])
         a["ssim"].append(row["ssim"])
-    np.savez_compressed(OUT_DIR / "synthesis_probs.npz", **saved)
+    args.probs.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(args.probs, **saved)
     summary = {}
     for alt, a in sorted(per_alt.items()):
         summary[f"{alt:g}"] = {"views": len(a["psnr"]), "recall": a["match"].recall, "precision": a["match"].precision,
@@ -164,13 +167,13 @@ def main() -> None:
     print(f"wrote {path}")
 
 
-def rescore(rule_texts: list[str], min_height_px: float) -> None:
+def rescore(rule_texts: list[str], min_height_px: float, probs_path: Path) -> None:
     """Score box rules on the masks and truth boxes the last run saved (no rendering)."""
     from bench.fields_ab import parse_variant
     from fields.mask_boxes import BoxRules, MaskBox, boxes_from_probabilities
     from fields.synthesis import BoxMatch, match_boxes
 
-    saved = np.load(OUT_DIR / "synthesis_probs.npz")
+    saved = np.load(probs_path)
     n = len([k for k in saved.files if k.startswith("prob_")])
     for text in rule_texts:
         _, over = parse_variant(":" + text)

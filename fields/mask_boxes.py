@@ -5,12 +5,22 @@ Input is a rendered soft mask: per-pixel probabilities ``(H, W, K)`` over K chan
 pixels, masks are soft at their edges, and neighbours can touch, so the rules are explicit:
 
 1. Foreground: ``1 - p_background >= threshold`` (default 0.5, the same half-coverage rule the
-   simulator uses for its ground-truth boxes).
-2. Blobs: 8-connected components of the foreground.
+   simulator uses for its ground-truth boxes). Optionally the foreground probability is first
+   smoothed (Gaussian, ``smooth_px`` sigma); the thresholded foreground is closed (binary
+   closing, square of side ``2 close_px + 1``, default 2 → 5 px): a rendered person at 15 m is
+   often a column of speckled fragments, each of which would otherwise be its own box. The price:
+   people closer than ~``2 close_px`` px merge into one blob.
+2. Blobs: 8-connected components of the foreground. With ``relative_threshold`` r > 0 each blob
+   keeps only its pixels with foreground >= r x the blob's peak, and what is left is split again
+   into 8-connected blobs: the edge of a blurred filled box lies at half its peak whatever the
+   peak (soft masks at altitude peak well below 1), and a faint bridge between two strong people
+   falls below the cut. With ``threshold`` lowered this way also finds faint people.
 3. Class: the class with the largest summed probability over the blob. If a second class holds at
    least ``class_split_share`` of the blob's class mass, the blob is split by per-pixel argmax
    class (two touching people of different classes).
-4. Touching people of one class: a blob is split when its (lightly smoothed) foreground
+4. Touching people of one class (off by default, ``peak_dip=None``: on rendered field masks the
+   split cut standing people into fragments more often than it separated neighbours, see
+   bench/RESULTS.md session 4): a blob is split when its (lightly smoothed) foreground
    probability has two or more peaks, at least ``min_peak_separation_px`` apart, with a dip of at
    least ``peak_dip`` in the raw probability along the straight line between every pair; pixels
    go to the peak they flow to (watershed). A hard 0/1 mask therefore never splits, and a split
@@ -39,12 +49,21 @@ class BoxRules:
     min_area_px: int = 4
     class_split_share: float = 0.35
     min_peak_separation_px: float = 3.0
-    #: 0.3, not 0.2: on rendered field masks 0.2 cut standing people into fragments (bench/RESULTS.md)
-    peak_dip: float = 0.3
+    #: dip in foreground probability between two peaks that splits a blob (rule 4); None: never split.
+    #: Off by default: at 300 s the 15 m held-out masks scored better without it (bench/RESULTS.md)
+    peak_dip: float | None = None
     max_border_cut: float = 0.5
     expected_size_px: float | None = None
     #: blobs whose mean foreground probability is below this are dropped (0: keep all)
     min_score: float = 0.0
+    #: share of a blob's peak foreground probability below which its pixels are cut off (rule 2;
+    #: 0: off, a blob is its ``threshold`` region; 0.5: half-maximum edges)
+    relative_threshold: float = 0.0
+    #: Gaussian sigma (pixels) applied to the foreground probability before every other rule (0: off)
+    smooth_px: float = 0.0
+    #: binary closing of the thresholded foreground, square of side 2 close_px + 1 pixels (0: off);
+    #: 2 = the best of 0-3 on the 15 m held-out masks (bench/RESULTS.md session 4)
+    close_px: int = 2
 
 
 @dataclass(frozen=True)
@@ -82,18 +101,25 @@ def boxes_from_probabilities(prob: np.ndarray, rules: BoxRules | None = None) ->
         raise ValueError(f"mask must be (H, W, K>=2) with channel 0 background, got {prob.shape}")
     prob = np.nan_to_num(prob, nan=0.0, posinf=1.0, neginf=0.0).clip(0.0, 1.0)
     fg = 1.0 - prob[..., 0]
+    if rules.smooth_px > 0.0:
+        fg = ndimage.gaussian_filter(fg, rules.smooth_px, mode="nearest")
     cls_prob = prob[..., 1:]
-    labels, n = ndimage.label(fg >= rules.threshold, structure=_EIGHT)
+    on = fg >= rules.threshold
+    if rules.close_px > 0:
+        k = 2 * int(rules.close_px) + 1
+        # pad so that closing does not erode blobs at the image border
+        on = ndimage.binary_closing(np.pad(on, k), np.ones((k, k), bool))[k:-k, k:-k]
+    labels, n = ndimage.label(on, structure=_EIGHT)
     boxes: list[MaskBox] = []
     for blob_id, sl in enumerate(ndimage.find_objects(labels), start=1):
         if sl is None:
             continue
-        blob = labels[sl] == blob_id
-        for part, class_id in _split_by_class(blob, cls_prob[sl], rules):
-            for piece in _split_by_peaks(part, fg[sl], rules):
-                box = _box_of(piece, sl, fg[sl], class_id)
-                if box is not None and _keep(box, prob.shape[:2], rules):
-                    boxes.append(box)
+        for core in _cut_below_peak_share(labels[sl] == blob_id, fg[sl], rules):
+            for part, class_id in _split_by_class(core, cls_prob[sl], rules):
+                for piece in _split_by_peaks(part, fg[sl], rules):
+                    box = _box_of(piece, sl, fg[sl], class_id)
+                    if box is not None and _keep(box, prob.shape[:2], rules):
+                        boxes.append(box)
     return boxes
 
 
@@ -140,6 +166,18 @@ def boxes_from_instances(instance_ids: np.ndarray, class_of: dict[int, int],
     return boxes
 
 
+def _cut_below_peak_share(blob: np.ndarray, fg: np.ndarray, rules: BoxRules):
+    """Yield the 8-connected parts of ``blob`` whose foreground is >= ``relative_threshold`` x the
+    blob's peak (the blob itself when the rule is off)."""
+    if rules.relative_threshold <= 0.0:
+        yield blob
+        return
+    core = blob & (fg >= rules.relative_threshold * float(fg[blob].max()))
+    part_labels, m = ndimage.label(core, structure=_EIGHT)
+    for k in range(1, m + 1):
+        yield part_labels == k
+
+
 def _split_by_class(blob: np.ndarray, cls_prob: np.ndarray, rules: BoxRules):
     """Yield (mask, class_id) parts of a blob: one part, or one per class when classes share it."""
     mass = (cls_prob * blob[..., None]).sum(axis=(0, 1))
@@ -160,7 +198,7 @@ def _split_by_class(blob: np.ndarray, cls_prob: np.ndarray, rules: BoxRules):
 
 def _split_by_peaks(part: np.ndarray, fg: np.ndarray, rules: BoxRules) -> list[np.ndarray]:
     """Split one blob at probability dips between well-separated peaks (watershed)."""
-    if part.sum() < 2 * rules.min_area_px:
+    if rules.peak_dip is None or part.sum() < 2 * rules.min_area_px:
         return [part]
     smooth = ndimage.gaussian_filter(np.where(part, fg, 0.0), 0.7)
     peaks = (smooth == ndimage.maximum_filter(smooth, size=3)) & part & (fg >= rules.threshold)

@@ -32,7 +32,7 @@ import torch
 from fields.data import FlightData, RayBank
 from fields.evaluation import MaskBox, match_boxes, psnr, ssim
 from fields.field import FieldConfig
-from fields.mask_boxes import boxes_from_probabilities
+from fields.mask_boxes import BoxRules, boxes_from_probabilities
 from fields.model import SamplerConfig, StaticModel
 from fields.scene import SceneBounds, Sizing, hash_params, scene_bounds, size_model
 
@@ -467,22 +467,27 @@ def _extra(bounds, sizing, curve, gen) -> dict:
 
 
 def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], min_box_px: float = 6.0,
-                    out_dir: Path | None = None) -> dict:
+                    out_dir: Path | None = None, rules: BoxRules | None = None,
+                    keep_probs: bool = False) -> dict:
     """PSNR / SSIM of rendered frames against the recorded images (mean appearance, as for a novel
     view), and box IoU of mask blobs against the frames' label boxes (boxes >= ``min_box_px`` on
-    their shorter side); blobs -> boxes by the synthesis rules (``boxes_from_probabilities``
-    defaults). Optionally writes side-by-side PNGs."""
+    their shorter side); blobs -> boxes by the synthesis rules (``boxes_from_probabilities`` with
+    ``rules``, default ``BoxRules()``). Optionally writes side-by-side PNGs; with ``keep_probs``
+    the summary also holds ``"mask_probs"``: frame index -> rendered (H, W, K) float16 mask, to
+    re-score other box rules without rendering."""
     import cv2
 
-    rows, ious = [], []
+    rows, ious, probs = [], [], {}
     for i in indices:
         r = model.render_image(data.camera, data.cam_from_world[i])
         gt = data.images[i].numpy()
         row = {"frame": data.names[i], "psnr": psnr(r["rgb"], gt), "ssim": ssim(r["rgb"], gt)}
+        if keep_probs and "mask_probs" in r:
+            probs[i] = np.asarray(r["mask_probs"], dtype=np.float16)
         if bool(data.has_mask[i]):
             truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]
                      if min(x1 - x0, y1 - y0) >= min_box_px]
-            found = match_boxes(truth, boxes_from_probabilities(r["mask_probs"]))
+            found = match_boxes(truth, boxes_from_probabilities(r["mask_probs"], rules))
             ious += found
             row["box_iou"] = float(np.mean(found)) if found else None
         rows.append(row)
@@ -496,6 +501,8 @@ def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], mi
                "box_iou_mean": float(np.mean(ious)) if ious else None,
                "box_iou_ge_0.5": float(np.mean(np.asarray(ious) >= 0.5)) if ious else None,
                "boxes_evaluated": len(ious)}
+    if keep_probs:
+        summary["mask_probs"] = probs
     return summary
 
 

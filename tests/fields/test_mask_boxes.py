@@ -59,6 +59,32 @@ def test_faint_blobs_below_min_score_are_dropped():
     assert [(b.x0, b.y0, round(b.score, 2)) for b in boxes] == [(10, 10, 0.9)]
 
 
+def test_relative_threshold_puts_each_blob_edge_at_a_share_of_its_peak():
+    p = _mask(30, 40)
+    _paint(p, 4, 12, 4, 12, cls=0, value=0.35)  # halo ring around a faint person
+    _paint(p, 5, 11, 5, 11, cls=0, value=0.6)  # faint person: peak 0.6
+    _paint(p, 4, 12, 24, 32, cls=0, value=0.35)  # the same halo around a sharp person
+    _paint(p, 5, 11, 25, 31, cls=0, value=0.95)  # sharp person: peak 0.95
+
+    def extents(rules):
+        return sorted((b.x0, b.y0, b.x1, b.y1) for b in boxes_from_probabilities(p, rules))
+
+    # absolute threshold 0.3: both blobs take the halo
+    assert extents(BoxRules(threshold=0.3)) == [(4, 4, 12, 12), (24, 4, 32, 12)]
+    # half of each peak: the faint person keeps the 0.35 ring (>= 0.30), the sharp one drops it (< 0.475)
+    assert extents(BoxRules(threshold=0.3, relative_threshold=0.5)) == [(4, 4, 12, 12), (25, 5, 31, 11)]
+
+
+def test_relative_threshold_separates_people_joined_by_a_faint_bridge():
+    p = _mask(20, 30)
+    _paint(p, 5, 12, 4, 10, cls=0, value=0.95)
+    _paint(p, 5, 12, 13, 19, cls=0, value=0.9)
+    _paint(p, 5, 12, 10, 13, cls=0, value=0.7)  # a faint band between them: too shallow a dip (0.2) to split
+    assert len(boxes_from_probabilities(p)) == 1
+    boxes = sorted(boxes_from_probabilities(p, BoxRules(relative_threshold=0.8)), key=lambda b: b.x0)
+    assert [(b.x0, b.x1) for b in boxes] == [(4, 10), (13, 19)]
+
+
 def test_blob_cut_by_border_dropped_only_beyond_the_threshold():
     p = _mask(30, 30)
     _paint(p, 10, 13, 0, 3, cls=0)  # mostly outside the frame: 3 px of an expected 12
@@ -85,11 +111,25 @@ def test_two_touching_people_of_one_class_are_split_at_the_dip():
     p[..., 0] = 1 - value
     p[..., 1] = value
     assert (value[10, 8:18] >= 0.5).all()  # one connected blob at the threshold
-    boxes = sorted(boxes_from_probabilities(p), key=lambda b: b.x0)
+    assert len(boxes_from_probabilities(p)) == 1  # the peak split is off by default
+    boxes = sorted(boxes_from_probabilities(p, BoxRules(peak_dip=0.3)), key=lambda b: b.x0)
     assert len(boxes) == 2
     assert boxes[0].x1 <= boxes[1].x0 + 1
     assert abs((boxes[0].x0 + boxes[0].x1) / 2 - 8.5) <= 1.5
     assert abs((boxes[1].x0 + boxes[1].x1) / 2 - 17.5) <= 1.5
+
+
+def test_a_speckled_person_is_one_box_after_closing():
+    p = _mask(40, 30)
+    for r0 in (5, 10, 15, 20):  # a standing person rendered as a column of fragments, 2 px gaps
+        _paint(p, r0, r0 + 3, 12, 16, cls=0, value=0.8)
+    (b,) = boxes_from_probabilities(p)  # default close_px=2 joins gaps up to 4 px
+    assert (b.x0, b.y0, b.x1, b.y1) == (12, 5, 16, 23)
+    assert len(boxes_from_probabilities(p, BoxRules(close_px=0))) == 4
+    q = _mask(40, 30)
+    _paint(q, 5, 20, 5, 9, cls=0)
+    _paint(q, 5, 20, 15, 19, cls=0)  # 6 px apart: stays two people
+    assert len(boxes_from_probabilities(q)) == 2
 
 
 def test_a_plateau_person_is_not_split():
