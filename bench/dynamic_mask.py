@@ -26,21 +26,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
 from bench.dynamic import load_avg, prepare  # noqa: E402
-
-
-def parse_variant(text: str) -> tuple[str, dict]:
-    """``name:key=value,...`` → (name, overrides); values parsed as Python literals where possible."""
-    import ast
-
-    name, _, rest = text.partition(":")
-    overrides = {}
-    for item in filter(None, rest.split(",")):
-        key, _, value = item.partition("=")
-        try:
-            overrides[key.strip()] = ast.literal_eval(value.strip())
-        except (ValueError, SyntaxError):
-            overrides[key.strip()] = value.strip()
-    return name, overrides
+from bench.fields_ab import parse_variant  # noqa: E402
 
 
 def main() -> None:
@@ -49,7 +35,8 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--iters", type=int, default=600, help="training iterations per variant")
     ap.add_argument("--budget-s", type=float, default=None, help="wall-clock budget instead of --iters")
-    ap.add_argument("--variant", action="append", default=[], help="name:key=value,... (DynamicFitConfig fields)")
+    ap.add_argument("--variant", action="append", default=[],
+                    help="name:key=value,... (DynamicFitConfig fields; values JSON, null = None)")
     ap.add_argument("--eval-every", type=int, default=4, help="score every k-th held-out frame")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--json", default=None)
