@@ -7,14 +7,16 @@ Frames are split in time so that nothing reported was seen by the field or the d
 fit the field and are Real's training set; odd frames are never seen by the field, frames 1, 5, 9, ...
 validate the detectors (best epoch) and frames 3, 7, 11, ... are the test set reported here.
 
-Field: extended K-Planes for ``--fit-budget-s``. Synthesis (:func:`fields.synth_flight.synthesize_flight`):
-N = ceil(real training frames / 3) trajectory points, each rendered at t - dt, t and t + dt (dt = one
-frame interval), boxes from the rendered mask blobs: as many synthetic images as real training frames
-(the paper's matched count). Detectors: YOLOv8n fine-tuned from the cached base detector (`uavsim
-detector pretrain`; ``--base none`` trains from scratch) with :func:`export.train.fine_tune_config`,
-the same epochs and seed for all three; mAP on the test frames through the ONNX flight path.
+Field: extended K-Planes for ``--fit-budget-s`` seconds, or ``--fit-iters`` steps (the same field whatever the
+machine's load; ``--fit-only`` stops there, and the next run reuses it). Synthesis
+(:func:`fields.synth_flight.synthesize_flight`): N = ceil(real training frames / 3) trajectory points, each
+rendered at t - dt, t and t + dt (dt = one frame interval), boxes from the rendered mask blobs: as many
+synthetic images as real training frames (the paper's matched count). Detectors: YOLOv8n fine-tuned from the
+cached base detector (`uavsim detector pretrain`; ``--base none`` trains from scratch) with
+:func:`export.train.fine_tune_config`, the same epochs and seed for all three; mAP on the test frames through
+the ONNX flight path.
 
-    uavsim bench dynamic_detect -- [--fit-budget-s 300] [--epochs 15] [--json OUT]
+    uavsim bench dynamic_detect -- [--fit-budget-s 300 | --fit-iters N] [--fit-only] [--epochs 15] [--json OUT]
 """
 
 from __future__ import annotations
