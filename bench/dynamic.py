@@ -31,6 +31,20 @@ def load_avg() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
+def flight_dir(width: int, frames: int, tag: str = "") -> Path:
+    """Where the simulated dynamic flight of this size is cached (shared by the dynamic benches)."""
+    return OUT_DIR / f"dynamic_flight_{width}px_{frames}f{tag}"
+
+
+def setup_torch(threads: int | None) -> None:
+    """Flush denormals (products of small plane features hit them: 2x slower without) and set threads."""
+    import torch
+
+    torch.set_flush_denormal(True)
+    if threads:
+        torch.set_num_threads(threads)
+
+
 def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: float = 0.05,
             jitter_deg: float = 0.15) -> None:
     """Render the flight once (cached under bench/out); ``jitter_*``: white per-frame pose noise."""
@@ -64,12 +78,10 @@ def main() -> None:
     from fields.dynamic_data import load_dynamic_flight
     from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split
 
-    torch.set_flush_denormal(True)  # products of small plane features hit denormals: 2x slower without
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    setup_torch(args.threads)
     jitter = (args.jitter_m, args.jitter_deg)
     tag = "" if jitter == (0.05, 0.15) else f"_jit{args.jitter_m:g}m{args.jitter_deg:g}deg"
-    flight = args.flight or OUT_DIR / f"dynamic_flight_{args.width}px_{args.frames}f{tag}"
+    flight = args.flight or flight_dir(args.width, args.frames, tag)
     t0 = time.perf_counter()
     prepare(flight, args.frames, args.width, jitter_m=args.jitter_m, jitter_deg=args.jitter_deg)
     dd = load_dynamic_flight(flight)

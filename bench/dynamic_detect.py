@@ -31,7 +31,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
-from bench.dynamic import load_avg, prepare  # noqa: E402
+from bench.dynamic import flight_dir, load_avg, prepare, setup_torch  # noqa: E402
 
 
 def time_split(samples: list) -> dict[str, list]:
@@ -77,7 +77,6 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
 
-    import torch
 
     from agent.replay import resolve_base
     from export.evaluate import evaluate_model
@@ -87,11 +86,9 @@ def main() -> None:
     from export.train import fine_tune_config, load_checkpoint, train
     from fields.synth_flight import synthesize_flight
 
-    torch.set_flush_denormal(True)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    setup_torch(args.threads)
     t0 = time.perf_counter()
-    flight = args.flight or OUT_DIR / f"dynamic_flight_{args.width}px_{args.frames}f"
+    flight = args.flight or flight_dir(args.width, args.frames)
     prepare(flight, args.frames, args.width, seed=args.seed)
     base = resolve_base(args.base)
     if base:

@@ -24,8 +24,8 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from bench._common import OUT_DIR, write_json  # noqa: E402
-from bench.dynamic import load_avg, prepare  # noqa: E402
+from bench._common import write_json  # noqa: E402
+from bench.dynamic import flight_dir, load_avg, prepare, setup_torch  # noqa: E402
 from bench.fields_ab import parse_variant  # noqa: E402
 
 
@@ -42,15 +42,12 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
 
-    import torch
 
     from fields.dynamic_data import load_dynamic_flight
     from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split
 
-    torch.set_flush_denormal(True)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    flight = OUT_DIR / f"dynamic_flight_{args.width}px_{args.frames}f"
+    setup_torch(args.threads)
+    flight = flight_dir(args.width, args.frames)
     prepare(flight, args.frames, args.width)
     dd = load_dynamic_flight(flight)
     _, val_idx = split(dd, 2)

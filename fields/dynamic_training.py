@@ -314,12 +314,10 @@ def evaluate_dynamic(model: DynamicModel, dd: DynamicFlightData, indices: list[i
             bg_err.append(float(sq[~inside].mean()))
         row["box_fraction"] = float(inside.mean())
         if bool(data.has_mask[i]):
-            truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]
-                     if min(x1 - x0, y1 - y0) >= min_box_px]
-            predicted = boxes_from_probabilities(r["mask_probs"])  # the synthesis rules
-            found = match_boxes(truth, predicted)
-            ious += found
             every_truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]]
+            truth = [t for t in every_truth if min(t.x1 - t.x0, t.y1 - t.y0) >= min_box_px]
+            predicted = boxes_from_probabilities(r["mask_probs"])  # the synthesis rules
+            ious += match_boxes(truth, predicted)
             matched = match_detections(predicted, every_truth, min_truth_height_px=min_box_px)
             agreement = matched if agreement is None else agreement + matched
             row["boxes"] = len(predicted)
