@@ -9,13 +9,15 @@ dropped), rendered at 640x480 (same field of view as the flight) through ``field
 same poses (supersample 2) as truth. Scores per altitude: recall, precision and mean IoU of
 mask-derived boxes against true boxes for people >= 6 px tall (greedy one-to-one, IoU >= 0.5, same
 class; smaller people neither missed nor false positives), class-agnostic as well, and PSNR / SSIM
-of the image. Speed: synthetic images per minute (render + boxes + writing) on this process's
+of the image. Box classes are voted by the training frames' labels (``fields.label_transfer``, what
+``uavsim synth`` writes); the scores with the mask head's own classes are reported beside them
+(``*_mask_class``). Speed: synthetic images per minute (render + boxes + writing) on this process's
 threads.
 
     python bench/synthesis.py [--config hash-strat] [--count 8] [--size 640x480]
     python bench/synthesis.py --rescore threshold=0.6,min_score=0.6   # box rules on the saved masks
 
-Every run keeps the rendered masks and true boxes in ``bench/out/synthesis_probs.npz`` (``--probs``);
+Every run keeps the rendered masks, depths, poses and true boxes in ``bench/out/synthesis_probs.npz`` (``--probs``);
 ``--rescore RULES`` (``BoxRules`` fields) scores other box rules on them without rendering.
 """
 
@@ -38,17 +40,20 @@ from bench.fields import load_avg, prepare  # noqa: E402
 
 
 class Recorder:
-    """Wraps a view renderer; keeps every (rgb, prob) and the time spent rendering."""
+    """Wraps a view renderer; keeps every (rgb, prob, depth) and the time spent rendering."""
 
     def __init__(self, inner):
         self.inner, self.views, self.seconds = inner, [], 0.0
 
-    def render_view(self, camera, cam_from_world, t_unix_us=None):
+    def render_view_depth(self, camera, cam_from_world, t_unix_us=None):
         t = time.perf_counter()
-        rgb, prob = self.inner.render_view(camera, cam_from_world, t_unix_us)
+        rgb, prob, depth = self.inner.render_view_depth(camera, cam_from_world, t_unix_us)
         self.seconds += time.perf_counter() - t
-        self.views.append((rgb, prob))
-        return rgb, prob
+        self.views.append((rgb, prob, depth))
+        return rgb, prob, depth
+
+    def render_view(self, camera, cam_from_world, t_unix_us=None):
+        return self.render_view_depth(camera, cam_from_world, t_unix_us)[:2]
 
 
 def main() -> None:
@@ -67,7 +72,7 @@ def main() -> None:
                     help="no rendering: BoxRules overrides key=value,... scored on the saved masks (repeatable)")
     args = ap.parse_args()
     if args.rescore:
-        rescore(args.rescore, args.min_height_px, args.probs)
+        rescore(args.rescore, args.min_height_px, args.probs, args.flight)
         return
 
     import torch
@@ -75,6 +80,7 @@ def main() -> None:
     from fields.data import load_flight
     from fields.evaluation import psnr, ssim
     from fields.field_views import FieldViewRenderer
+    from fields.label_transfer import LabelledFrames
     from fields.mask_boxes import BoxRules, boxes_from_probabilities
     from fields.novel_poses import NovelPoseOptions, static_novel_poses
     from fields.synthesis import BoxMatch, SynthOptions, match_boxes, synthesize
@@ -118,8 +124,9 @@ def main() -> None:
     renderer = Recorder(FieldViewRenderer(model, n_classes=len(names)))
     out = OUT_DIR / "synthesis_views"
     load0 = load_avg()
+    labels_from = LabelledFrames.from_flight_data(data, train_idx)
     report = synthesize(renderer, cam, Origin(0.0, 0.0, 0.0), [p.entry() for p in kept], out, names,
-                        SynthOptions(rules=rules))
+                        SynthOptions(rules=rules), labels_from=labels_from)
     load1 = load_avg()
     print(f"synthesised {report.images} views in {report.seconds:.1f} s ({report.images_per_minute:.2f}/min); "
           f"{load1}", flush=True)
@@ -127,24 +134,31 @@ def main() -> None:
     world = make_world(seed=0)
     per_alt: dict[float, dict] = {}
     rows, saved = [], {}
-    for k, (pose, (rgb, prob)) in enumerate(zip(kept, renderer.views, strict=True)):
+    for k, (pose, (rgb, prob, depth)) in enumerate(zip(kept, renderer.views, strict=True)):
         truth = world.render(cam, pose.cam_from_world, supersample=2)
         saved[f"prob_{k}"] = prob.astype(np.float16)
+        saved[f"depth_{k}"] = depth.astype(np.float32)
+        saved[f"pose_{k}"] = np.asarray(pose.cam_from_world, np.float64)
         saved[f"truth_{k}"] = np.array([[b.class_id, b.x0, b.y0, b.x1, b.y1] for b in truth.boxes], np.float32)
         saved[f"alt_{k}"] = np.float32(pose.altitude_m)
-        pred = boxes_from_probabilities(prob, rules)
+        own = boxes_from_probabilities(prob, rules)
+        pred, _ = labels_from.relabel(own, 1.0 - prob[..., 0], depth, cam, pose.cam_from_world,
+                                      threshold=rules.threshold)
         m = match_boxes(pred, truth.boxes, 0.5, args.min_height_px)
+        m_own = match_boxes(own, truth.boxes, 0.5, args.min_height_px)
         m_any = match_boxes(pred, truth.boxes, 0.5, args.min_height_px, same_class=False)
         row = {"altitude_m": pose.altitude_m, "pitch_deg": round(pose.pitch_deg, 1),
                "psnr": psnr(rgb, truth.rgb), "ssim": ssim(rgb, truth.rgb),
                "true_people": sum((b.y1 - b.y0) >= args.min_height_px for b in truth.boxes), "pred_boxes": len(pred),
                "recall": m.recall, "precision": m.precision, "mean_iou": m.mean_iou,
-               "recall_any_class": m_any.recall, "precision_any_class": m_any.precision}
+               "recall_any_class": m_any.recall, "precision_any_class": m_any.precision,
+               "recall_mask_class": m_own.recall, "precision_mask_class": m_own.precision}
         rows.append(row)
         print(json.dumps(row), flush=True)
         a = per_alt.setdefault(pose.altitude_m, {"match": BoxMatch(0, 0, 0, []), "any": BoxMatch(0, 0, 0, []),
-                                                 "psnr": [], "ssim": []})
+                                                 "own": BoxMatch(0, 0, 0, []), "psnr": [], "ssim": []})
         a["match"] = a["match"] + m
+        a["own"] = a["own"] + m_own
         a["any"] = a["any"] + m_any
         a["psnr"].append(row["psnr"])
         a["ssim"].append(row["ssim"])
@@ -155,6 +169,7 @@ def main() -> None:
         summary[f"{alt:g}"] = {"views": len(a["psnr"]), "recall": a["match"].recall, "precision": a["match"].precision,
                                "mean_iou": a["match"].mean_iou, "recall_any_class": a["any"].recall,
                                "precision_any_class": a["any"].precision, "mean_iou_any_class": a["any"].mean_iou,
+                               "recall_mask_class": a["own"].recall, "precision_mask_class": a["own"].precision,
                                "true_people": a["match"].true_positives + a["match"].false_negatives,
                                "psnr": float(np.mean(a["psnr"])), "ssim": float(np.mean(a["ssim"]))}
         print(f"{alt:g} m: {json.dumps(summary[f'{alt:g}'])}", flush=True)
@@ -167,21 +182,32 @@ def main() -> None:
     print(f"wrote {path}")
 
 
-def rescore(rule_texts: list[str], min_height_px: float, probs_path: Path) -> None:
-    """Score box rules on the masks and truth boxes the last run saved (no rendering)."""
+def rescore(rule_texts: list[str], min_height_px: float, probs_path: Path, flight: Path) -> None:
+    """Score box rules on the masks and truth boxes the last run saved (no rendering); classes voted by
+    the flight's training labels when the run saved depths, else the mask's own."""
     from bench.fields_ab import parse_variant
+    from fields.data import load_flight
+    from fields.label_transfer import LabelledFrames
     from fields.mask_boxes import BoxRules, MaskBox, boxes_from_probabilities
     from fields.synthesis import BoxMatch, match_boxes
 
     saved = np.load(probs_path)
     n = len([k for k in saved.files if k.startswith("prob_")])
+    voters = None
+    if "depth_0" in saved.files:
+        data = load_flight(flight)
+        voters = LabelledFrames.from_flight_data(data, data.split(8)[0])
     for text in rule_texts:
         _, over = parse_variant(":" + text)
         rules = BoxRules(**over)
         per_alt: dict[float, BoxMatch] = {}
         for k in range(n):
             truth = [MaskBox(int(c), x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in saved[f"truth_{k}"]]
-            pred = boxes_from_probabilities(saved[f"prob_{k}"].astype(np.float32), rules)
+            prob = saved[f"prob_{k}"].astype(np.float32)
+            pred = boxes_from_probabilities(prob, rules)
+            if voters is not None:
+                pred, _ = voters.relabel(pred, 1.0 - prob[..., 0], saved[f"depth_{k}"], voters.camera.scaled(
+                    prob.shape[1] / voters.camera.width), saved[f"pose_{k}"], threshold=rules.threshold)
             alt = float(saved[f"alt_{k}"])
             per_alt[alt] = per_alt.get(alt, BoxMatch(0, 0, 0, [])) + match_boxes(pred, truth, 0.5, min_height_px)
         print(json.dumps({"rules": over, **{f"{a:g}": {"recall": round(m.recall, 3), "precision": round(m.precision, 3),

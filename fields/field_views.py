@@ -33,29 +33,37 @@ class FieldViewRenderer:
                      with_mask: bool) -> dict:
         return self.model.render_rays(origins, dirs, None, train=False, with_mask=with_mask)
 
-    @torch.no_grad()
     def render_view(self, camera: Camera, cam_from_world: np.ndarray, t_unix_us: int | None = None,
                     with_mask: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """RGB (H,W,3) uint8 and class probabilities (H,W,C+1), channel 0 background (None without mask)."""
+        rgb, prob, _ = self.render_view_depth(camera, cam_from_world, t_unix_us, with_mask)
+        return rgb, prob
+
+    @torch.no_grad()
+    def render_view_depth(self, camera: Camera, cam_from_world: np.ndarray, t_unix_us: int | None = None,
+                          with_mask: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """As :meth:`render_view`, plus the expected depth (H,W) float32, metres along each pixel's unit ray."""
         dev = self.model.field.lo.device
         uv = camera.pixel_grid().reshape(-1, 2)
         o, d = camera.rays_world(np.asarray(cam_from_world, np.float64), uv)
         o_t = torch.from_numpy(np.broadcast_to(o, d.shape).astype(np.float32)).to(dev)
         d_t = torch.from_numpy(d.astype(np.float32)).to(dev)
-        rgb, probs = [], []
+        rgb, probs, depth = [], [], []
         for a in range(0, d_t.shape[0], self.chunk):
             res = self._render_rays(o_t[a:a + self.chunk], d_t[a:a + self.chunk], t_unix_us, with_mask)
             rgb.append(res["rgb"].float().cpu())
+            depth.append(res["depth"].float().reshape(-1).cpu())
             if with_mask:
                 probs.append(res["mask_probs"].float().cpu())
         h, w = camera.height, camera.width
         rgb_u8 = (torch.cat(rgb).clamp(0, 1).view(h, w, 3).numpy() * 255.0 + 0.5).astype(np.uint8)
+        depth_m = torch.cat(depth).view(h, w).numpy()
         if not with_mask:
-            return rgb_u8, None
+            return rgb_u8, None, depth_m
         prob = torch.cat(probs).view(h, w, -1).numpy()
         if self.n_classes is not None and prob.shape[-1] != self.n_classes + 1:
             raise ValueError(f"field has {prob.shape[-1] - 1} mask classes, the flight {self.n_classes}")
-        return rgb_u8, prob
+        return rgb_u8, prob, depth_m
 
 
 class DynamicViewRenderer(FieldViewRenderer):

@@ -6,7 +6,10 @@ the K-Planes field (dynamic scene, the paper's: N points on the real trajectory,
 and t ± Δt with Δt one frame interval). Writes ``derived/synth/`` (see :mod:`fields.synthesis`) and
 ``derived/datasets/{real,synthetic,r+s}/``.
 Real labels come from the flight's ``labels/`` (self-labelling with a detector happens before,
-in the agent's processing step, when a flight has none).
+in the agent's processing step, when a flight has none). By default they also decide each synthetic
+box's class (``class_source="labels"``, :mod:`fields.label_transfer`): the mask finds the people,
+the real labels that see them name the class; in a dynamic scene only real frames within 1.5 frame
+intervals of the view's time vote.
 """
 
 from __future__ import annotations
@@ -19,18 +22,22 @@ log = logging.getLogger(__name__)
 
 def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0, 40.0, 45.0, 50.0),
                       count: int = 0, seed: int = 0, max_outside_fraction: float = 0.1,
-                      checkpoint: str | Path | None = None) -> dict:
+                      checkpoint: str | Path | None = None, class_source: str = "labels") -> dict:
     """Render ``count`` novel views (0: as many as the real training frames) and build the datasets.
 
     ``checkpoint``: the fitted field (None: ``derived/fields/static.pt``, else ``dynamic.pt``).
     ``altitudes_m`` and ``max_outside_fraction`` apply to static scenes only; a dynamic scene renders
-    ceil(count / 3) trajectory points × (t − Δt, t, t + Δt).
+    ceil(count / 3) trajectory points × (t − Δt, t, t + Δt). ``class_source``: "labels" (boxes'
+    classes voted by the real labels) or "mask" (the mask head's class).
     """
     from export.paper_datasets import build_paper_datasets, labelled_samples, read_class_names
     from fields.field_views import DynamicViewRenderer, load_view_renderer
+    from fields.label_transfer import LabelledFrames
     from fields.synthesis import synthesize
     from telemetry.posesfile import PosesFile
 
+    if class_source not in ("labels", "mask"):
+        raise ValueError(f"class_source must be 'labels' or 'mask', got {class_source!r}")
     flight = Path(flight)
     derived = flight / "derived"
     fields_dir = derived / "fields"
@@ -46,8 +53,10 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     real = labelled_samples(flight / "frames", flight / "labels")
     count = count or max(1, len(real) - len(real) // 5)
     renderer = load_view_renderer(checkpoint, flight, n_classes=len(names))
+    max_dt_us = None
     if isinstance(renderer, DynamicViewRenderer):
-        kept_entries, dropped = _dynamic_poses(poses, count), []
+        (kept_entries, frame_interval_us), dropped = _dynamic_poses(poses, count), []
+        max_dt_us = int(1.5 * frame_interval_us)
     else:
         kept_entries, dropped = _static_poses(renderer.model.background.ground_z, poses, altitudes_m, count, seed,
                                               max_outside_fraction)
@@ -56,12 +65,15 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
         if i % 10 == 0 or i == n:
             log.info("synthesised %d/%d views", i, n)
 
+    labels_from = LabelledFrames.from_flight(flight) if class_source == "labels" else None
     report = synthesize(renderer, poses.camera, poses.origin, kept_entries, derived / "synth",
-                        names, dropped=dropped, progress=progress)
+                        names, dropped=dropped, progress=progress, labels_from=labels_from, max_dt_us=max_dt_us)
     synthetic = labelled_samples(derived / "synth" / "images", derived / "synth" / "labels")
     sets = build_paper_datasets(real, synthetic, derived / "datasets", names, seed=seed)
     return {"images": report.images, "boxes": report.boxes, "boxes_per_class": report.boxes_per_class,
             "empty_images": report.empty_images, "dropped_poses": len(dropped),
+            "class_source": report.class_source, "relabelled_boxes": report.relabelled_boxes,
+            "unvoted_boxes": report.unvoted_boxes,
             "images_per_minute": round(report.images_per_minute, 2),
             "datasets": {k: str(v) for k, v in sets.items()}}
 
@@ -84,7 +96,8 @@ def _static_poses(ground_z: float, poses, altitudes_m, count: int, seed: int, ma
 
 
 def _dynamic_poses(poses, count: int):
-    """3N trajectory entries (t − Δt, t, t + Δt; Δt = the median frame interval) for a dynamic scene."""
+    """3N trajectory entries (t − Δt, t, t + Δt; Δt = the median frame interval, µs, also returned)
+    for a dynamic scene."""
     import numpy as np
 
     from fields.novel_poses import dynamic_novel_poses
@@ -94,11 +107,12 @@ def _dynamic_poses(poses, count: int):
     steps = steps[steps > 0]
     if steps.size == 0:
         raise ValueError("a dynamic field needs posed frames with at least two distinct capture times")
-    frame_rate_hz = 1e6 / float(np.median(steps))
+    frame_interval_us = float(np.median(steps))
+    frame_rate_hz = 1e6 / frame_interval_us
     entries = dynamic_novel_poses(poses.posed(), n_points=-(-count // 3), frame_rate_hz=frame_rate_hz)
     log.info("dynamic synthesis: %d trajectory points x 3 times (dt %.3f s)", len(entries) // 3,
              1.0 / frame_rate_hz)
-    return entries
+    return entries, frame_interval_us
 
 
 def register(subparsers) -> None:
@@ -109,6 +123,8 @@ def register(subparsers) -> None:
     p.add_argument("--max-outside", type=float, default=0.1,
                    help="drop views showing more than this fraction of unobserved ground")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--class-source", choices=("labels", "mask"), default="labels",
+                   help="boxes' classes: voted by the real labels that see them (default) or the mask head's")
     p.set_defaults(func=run_cli)
 
 
@@ -117,7 +133,8 @@ def run_cli(args) -> int:
 
     if args.count < 0:
         raise ValueError(f"--count must be >= 0, got {args.count}")
-    s = synthesize_flight(args.flight, parse_altitudes(args.altitudes), args.count, args.seed, args.max_outside)
+    s = synthesize_flight(args.flight, parse_altitudes(args.altitudes), args.count, args.seed, args.max_outside,
+                          class_source=args.class_source)
     print(f"{args.flight}/derived/synth: {s['images']} views, {s['boxes']} boxes {s['boxes_per_class']}, "
           f"{s['dropped_poses']} poses dropped; datasets: {', '.join(s['datasets'])}")
     return 0

@@ -14,6 +14,10 @@ The renderer is anything with ``render_view(camera, cam_from_world, t_unix_us) -
 ``rgb`` (H, W, 3) uint8 and ``prob`` (H, W, K) per-pixel probabilities with channel 0 background
 and channel c + 1 class c. A fitted field provides one; so does the simulator (ground truth),
 which the tests and benchmarks use to measure the box rules alone.
+
+Box classes: the mask's own (the class with the most probability over the blob), or, with
+``labels_from`` (:class:`fields.label_transfer.LabelledFrames`), voted by the real frames' labels
+that see the blob's 3D points; that needs a renderer with ``render_view_depth`` (a fitted field).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from fields.label_transfer import LabelledFrames
 from fields.mask_boxes import BoxRules, MaskBox, box_iou, boxes_from_probabilities
 from telemetry.camera import Camera
 from telemetry.posesfile import Origin, PoseEntry, PosesFile
@@ -60,6 +65,11 @@ class SynthReport:
     seconds: float
     images_per_minute: float
     dropped_poses: list[dict]
+    #: "mask" (the mask head's class) or "labels" (voted by the real labels, fields.label_transfer)
+    class_source: str = "mask"
+    #: boxes whose class the label votes changed, and boxes no real label saw (mask class kept)
+    relabelled_boxes: int = 0
+    unvoted_boxes: int = 0
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -68,31 +78,44 @@ class SynthReport:
 def synthesize(renderer: ViewRenderer, camera: Camera, origin: Origin, poses: list[PoseEntry],
                out_dir: str | Path, class_names: list[str], options: SynthOptions | None = None,
                dropped: list[dict] | None = None,
-               progress: Callable[[int, int], None] | None = None) -> SynthReport:
+               progress: Callable[[int, int], None] | None = None,
+               labels_from: LabelledFrames | None = None, max_dt_us: int | None = None) -> SynthReport:
     """Render every pose, derive boxes from the masks, write the synthetic set to ``out_dir``.
 
     ``poses`` are poses-file entries (``cam_from_world`` set; ``t_unix_us`` sets the scene time of
     dynamic fields). Images are written as they are rendered, so an interrupted run keeps what it
-    finished; ``poses.json`` and the report are written last.
+    finished; ``poses.json`` and the report are written last. ``labels_from``: take each box's class
+    from the real labels (module docstring); ``max_dt_us``: only real frames that close in time vote.
     """
     options = options or SynthOptions()
+    if labels_from is not None and not hasattr(renderer, "render_view_depth"):
+        raise TypeError(f"class votes from labels need depth; {type(renderer).__name__} has no render_view_depth")
     out = Path(out_dir)
     for sub in ("images", "labels") + (("masks",) if options.write_masks else ()):
         (out / sub).mkdir(parents=True, exist_ok=True)
     per_class = dict.fromkeys(class_names, 0)
     entries: list[PoseEntry] = []
     sheet: list[tuple[np.ndarray, list[MaskBox]]] = []
-    n_boxes = empty = 0
+    n_boxes = empty = relabelled = unvoted = 0
     t0 = time.perf_counter()
     sheet_every = max(1, math.ceil(len(poses) / max(options.contact_sheet_tiles, 1)))
     for i, pose in enumerate(poses):
         if pose.cam_from_world is None:
             raise ValueError(f"pose {i} has no cam_from_world: only posed entries can be rendered")
-        rgb, prob = renderer.render_view(camera, pose.cam_from_world, pose.t_unix_us)
+        if labels_from is None:
+            rgb, prob = renderer.render_view(camera, pose.cam_from_world, pose.t_unix_us)
+        else:
+            rgb, prob, depth = renderer.render_view_depth(camera, pose.cam_from_world, pose.t_unix_us)
         if rgb.shape[:2] != (camera.height, camera.width) or prob.shape[:2] != rgb.shape[:2]:
             raise ValueError(f"renderer returned {rgb.shape} / {prob.shape} for a "
                              f"{camera.width}x{camera.height} camera")
         boxes = boxes_from_probabilities(prob, options.rules)
+        if labels_from is not None:
+            mask_classes = [b.class_id for b in boxes]
+            boxes, n_unvoted = labels_from.relabel(boxes, 1.0 - prob[..., 0], depth, camera, pose.cam_from_world,
+                                                   pose.t_unix_us, max_dt_us, options.rules.threshold)
+            relabelled += sum(b.class_id != c for b, c in zip(boxes, mask_classes, strict=True))
+            unvoted += n_unvoted
         stem = f"{options.name_prefix}{i:05d}"
         cv2.imwrite(str(out / "images" / f"{stem}.jpg"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
                     [cv2.IMWRITE_JPEG_QUALITY, options.jpeg_quality])
@@ -117,7 +140,8 @@ def synthesize(renderer: ViewRenderer, camera: Camera, origin: Origin, poses: li
         cv2.imwrite(str(out / "contact_sheet.png"),
                     cv2.cvtColor(contact_sheet(sheet, class_names), cv2.COLOR_RGB2BGR))
     report = SynthReport(len(poses), n_boxes, per_class, empty, seconds,
-                         60.0 * len(poses) / seconds if seconds > 0 else 0.0, dropped or [])
+                         60.0 * len(poses) / seconds if seconds > 0 else 0.0, dropped or [],
+                         "mask" if labels_from is None else "labels", relabelled, unvoted)
     (out / "report.json").write_text(json.dumps(report.to_json(), indent=1) + "\n")
     return report
 
