@@ -64,6 +64,9 @@ def main() -> None:
     ap.add_argument("--count", type=int, default=8, help="novel views (half at 35 m, half at 50 m)")
     ap.add_argument("--size", default="640x480")
     ap.add_argument("--min-height-px", type=float, default=6.0)
+    ap.add_argument("--pose-seed", type=int, default=0,
+                    help="novel-pose seed of the first altitude (+1 for the second); another seed gives "
+                         "tuning views apart from the default test views")
     ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
     ap.add_argument("--json", default=None)
     ap.add_argument("--probs", type=Path, default=OUT_DIR / "synthesis_probs.npz",
@@ -81,9 +84,9 @@ def main() -> None:
     from fields.evaluation import psnr, ssim
     from fields.field_views import FieldViewRenderer
     from fields.label_transfer import LabelledFrames
-    from fields.mask_boxes import BoxRules, boxes_from_probabilities
+    from fields.mask_boxes import boxes_from_probabilities
     from fields.novel_poses import NovelPoseOptions, static_novel_poses
-    from fields.synthesis import BoxMatch, SynthOptions, match_boxes, synthesize
+    from fields.synthesis import HIGH_ALTITUDE_RULES, BoxMatch, SynthOptions, match_boxes, synthesize
     from fields.training import FitConfig, fit, load_checkpoint, save_checkpoint
     from sim.world import make_world
     from telemetry.posesfile import Origin
@@ -114,13 +117,14 @@ def main() -> None:
     real = [data.cam_from_world[i] for i in train_idx]
     novel = []
     for k, alt in enumerate((35.0, 50.0)):  # half the views at each altitude
-        opts = NovelPoseOptions(altitudes_m=(alt,), count=(args.count + 1 - k) // 2, poses_per_trajectory=1, seed=k)
+        opts = NovelPoseOptions(altitudes_m=(alt,), count=(args.count + 1 - k) // 2, poses_per_trajectory=1,
+                                seed=args.pose_seed + k)
         novel += static_novel_poses(cam, real, opts, ground_z=model.background.ground_z)
     kept = [p for p in novel if p.kept]
     print(f"{len(kept)} novel poses kept, {len(novel) - len(kept)} dropped", flush=True)
 
     names = list(data.classes)
-    rules = BoxRules()
+    rules = HIGH_ALTITUDE_RULES  # what `uavsim synth` uses for static views
     renderer = Recorder(FieldViewRenderer(model, n_classes=len(names)))
     out = OUT_DIR / "synthesis_views"
     load0 = load_avg()

@@ -9,7 +9,8 @@ Real labels come from the flight's ``labels/`` (self-labelling with a detector h
 in the agent's processing step, when a flight has none). By default they also decide each synthetic
 box's class (``class_source="labels"``, :mod:`fields.label_transfer`): the mask finds the people,
 the real labels that see them name the class; in a dynamic scene only real frames within 1.5 frame
-intervals of the view's time vote.
+intervals of the view's time vote. Static views take their boxes with
+:data:`fields.synthesis.HIGH_ALTITUDE_RULES`, dynamic views (flown altitude) with the default rules.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     from export.paper_datasets import build_paper_datasets, labelled_samples, read_class_names
     from fields.field_views import DynamicViewRenderer, load_view_renderer
     from fields.label_transfer import LabelledFrames
-    from fields.synthesis import synthesize
+    from fields.synthesis import HIGH_ALTITUDE_RULES, SynthOptions, synthesize
     from telemetry.posesfile import PosesFile
 
     if class_source not in ("labels", "mask"):
@@ -53,13 +54,14 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     real = labelled_samples(flight / "frames", flight / "labels")
     count = count or max(1, len(real) - len(real) // 5)
     renderer = load_view_renderer(checkpoint, flight, n_classes=len(names))
-    max_dt_us = None
+    max_dt_us, options = None, SynthOptions()
     if isinstance(renderer, DynamicViewRenderer):
         (kept_entries, frame_interval_us), dropped = _dynamic_poses(poses, count), []
         max_dt_us = int(1.5 * frame_interval_us)
     else:
         kept_entries, dropped = _static_poses(renderer.model.background.ground_z, poses, altitudes_m, count, seed,
                                               max_outside_fraction)
+        options = SynthOptions(rules=HIGH_ALTITUDE_RULES)
 
     def progress(i, n):
         if i % 10 == 0 or i == n:
@@ -67,7 +69,8 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
 
     labels_from = LabelledFrames.from_flight(flight) if class_source == "labels" else None
     report = synthesize(renderer, poses.camera, poses.origin, kept_entries, derived / "synth",
-                        names, dropped=dropped, progress=progress, labels_from=labels_from, max_dt_us=max_dt_us)
+                        names, options, dropped=dropped, progress=progress, labels_from=labels_from,
+                        max_dt_us=max_dt_us)
     synthetic = labelled_samples(derived / "synth" / "images", derived / "synth" / "labels")
     sets = build_paper_datasets(real, synthetic, derived / "datasets", names, seed=seed)
     return {"images": report.images, "boxes": report.boxes, "boxes_per_class": report.boxes_per_class,
