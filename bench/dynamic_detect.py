@@ -41,18 +41,23 @@ def time_split(samples: list) -> dict[str, list]:
 
 def fit_field(flight: Path, budget_s: float | None, seed: int, iters: int | None = None) -> dict:
     """Extended K-Planes on the even frames for ``budget_s`` seconds or ``iters`` steps (kept when
-    ``derived/fields/dynamic.pt`` and its summary exist)."""
+    ``derived/fields/dynamic.pt`` and its summary exist and were fitted with the same request)."""
     import json
 
     from fields.dynamic_cli import fit_dynamic_flight
 
     out = flight / "derived" / "fields"
     summary = out / "bench_fit.json"
+    request = {"iters": iters, "budget_s": None if iters else budget_s, "seed": seed}
     if (out / "dynamic.pt").is_file() and summary.is_file():
-        return json.loads(summary.read_text())
+        cached = json.loads(summary.read_text())
+        if cached.get("request", request) == request:  # summaries before the request was kept: trusted
+            return cached
+        print(f"cached field was fitted for {cached['request']}, not {request}: refitting", flush=True)
     t = time.perf_counter()
-    info = fit_dynamic_flight(flight, out, "kplanes-ext", budget_s=None if iters else budget_s, iters=iters,
+    info = fit_dynamic_flight(flight, out, "kplanes-ext", budget_s=request["budget_s"], iters=iters,
                               holdout_every=2, seed=seed)
+    info["request"] = request
     info["stage_s"] = round(time.perf_counter() - t, 1)
     info["load_end"] = load_avg()
     summary.write_text(json.dumps(info, indent=1) + "\n")
