@@ -82,7 +82,6 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
 
-
     from agent.replay import resolve_base
     from export.evaluate import evaluate_model
     from export.onnx_export import export_onnx

@@ -42,7 +42,6 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
 
-
     from fields.dynamic_data import load_dynamic_flight
     from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split
 

@@ -119,9 +119,6 @@ class LabelledFrames:
         unit ray from ``cam_from_world``'s centre. Pixels of a box with foreground >= ``threshold``
         (at least its strongest one) are lifted to 3D.
         """
-        if not boxes:
-            return [], 0
-        origin, dirs = camera.rays_world(cam_from_world, camera.pixel_grid())
         out, unvoted = [], 0
         for box in boxes:
             fg = foreground[box.y0:box.y1, box.x0:box.x1]
@@ -130,7 +127,9 @@ class LabelledFrames:
                 keep = np.linspace(0, len(ys) - 1, MAX_POINTS_PER_BOX).round().astype(int)
                 ys, xs = ys[keep], xs[keep]
             ys, xs = ys + box.y0, xs + box.x0
-            points = origin + dirs[ys, xs] * depth[ys, xs, None]
+            # rays through those pixels' centres only (pixel centres at +0.5, as camera.pixel_grid)
+            origin, dirs = camera.rays_world(cam_from_world, np.stack([xs + 0.5, ys + 0.5], axis=-1))
+            points = origin + dirs * depth[ys, xs, None]
             votes = self.class_votes(points, t_unix_us, max_dt_us)
             if votes.sum() <= 0.0:
                 unvoted += 1

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from fields.data import parse_labels
 from fields.label_transfer import LabelledFrames
 from fields.mask_boxes import MaskBox
 from fields.synthesis import SynthOptions, match_boxes, synthesize
@@ -112,7 +113,8 @@ def test_label_votes_fix_the_classes_of_a_one_class_mask(tmp_path):
         truth = sim.render_full(cam, T).boxes
         true_classes |= {b.class_id for b in truth}
         lines = (tmp_path / "labels" / f"synth_{k:05d}.txt").read_text().splitlines()
-        pred = [_from_yolo(line, cam.width, cam.height) for line in lines]
+        pred = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in parse_labels(
+            "\n".join(lines), cam.width, cam.height, 3)]
         any_class += match_boxes(pred, truth, 0.5, 4, same_class=False).true_positives
         same_class += match_boxes(pred, truth, 0.5, 4).true_positives
         prone += match_boxes([MaskBox(2, b.x0, b.y0, b.x1, b.y1, 0, 1.0) for b in pred], truth, 0.5, 4).true_positives
@@ -123,8 +125,3 @@ def test_label_votes_fix_the_classes_of_a_one_class_mask(tmp_path):
         synthesize(sim, cam, Origin(0.0, 0.0, 0.0), entries, tmp_path / "x", list(world.class_names),
                    labels_from=frames)
 
-
-def _from_yolo(line: str, w: int, h: int) -> MaskBox:
-    c, cx, cy, bw, bh = line.split()
-    cx, cy, bw, bh = float(cx) * w, float(cy) * h, float(bw) * w, float(bh) * h
-    return MaskBox(int(c), round(cx - bw / 2), round(cy - bh / 2), round(cx + bw / 2), round(cy + bh / 2), 0, 1.0)
