@@ -10,6 +10,7 @@ jitter, see fields.dynamic_simscene.PoseNoise). Both kinds use the same DynamicF
 held-out PSNR / SSIM over all validation frames, PSNR inside person boxes, steps, parameters, MB.
 
     uavsim bench dynamic -- [--budget-s 300] [--frames 80] [--width 160] [--json OUT]
+    uavsim bench dynamic -- --kinds kplanes --set features=32   # one option changed for both kinds
 """
 
 from __future__ import annotations
@@ -60,6 +61,40 @@ def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: floa
     write_line_flight(flight, world, camera, LineSpec(frames=frames, seed=seed), noise, supersample=2)
 
 
+def parse_overrides(items: list[str]) -> dict:
+    """``["features=32", "gate=false"]`` -> typed DynamicFitConfig options (the type of each default)."""
+    from dataclasses import fields
+
+    from fields.dynamic_training import DynamicFitConfig
+
+    defaults = {f.name: f.default for f in fields(DynamicFitConfig)}
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or key not in defaults:
+            raise SystemExit(f"--set {item!r}: expected KEY=VALUE with KEY one of {sorted(defaults)}")
+        default = defaults[key]
+        if text.lower() == "none":
+            out[key] = None
+        elif isinstance(default, bool):
+            out[key] = text.lower() in ("1", "true", "yes")
+        elif isinstance(default, int):
+            out[key] = int(float(text))
+        elif isinstance(default, float) or (default is None and _is_number(text)):
+            out[key] = float(text)
+        else:
+            out[key] = text
+    return out
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--budget-s", type=float, default=300.0, help="training seconds per kind")
@@ -71,6 +106,8 @@ def main() -> None:
     ap.add_argument("--jitter-deg", type=float, default=0.15, help="white per-frame attitude noise, deg")
     ap.add_argument("--flight", type=Path, default=None, help="flight folder (default bench/out/dynamic_...)")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a DynamicFitConfig option for both kinds, e.g. features=32 (repeatable)")
     args = ap.parse_args()
 
     import torch
@@ -79,6 +116,7 @@ def main() -> None:
     from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split
 
     setup_torch(args.threads)
+    overrides = parse_overrides(args.set)
     jitter = (args.jitter_m, args.jitter_deg)
     tag = "" if jitter == (0.05, 0.15) else f"_jit{args.jitter_m:g}m{args.jitter_deg:g}deg"
     flight = args.flight or flight_dir(args.width, args.frames, tag)
@@ -92,7 +130,7 @@ def main() -> None:
     results = {}
     for kind in args.kinds.split(","):
         cfg = DynamicFitConfig(kind=kind, budget_s=args.budget_s, iters=10**9, threads=args.threads,
-                               checkpoint_every_s=1e9)
+                               checkpoint_every_s=1e9, **overrides)
         r = fit_dynamic(dd, cfg, flight=flight)
         t_e = time.perf_counter()
         ev = evaluate_dynamic(r.model, dd, val_idx, out_dir=OUT_DIR / f"dynamic_{kind}{tag}_heldout")
@@ -111,7 +149,7 @@ def main() -> None:
                "width": dd.data.camera.width, "height": dd.data.camera.height, "budget_s": args.budget_s,
                "jitter_m": args.jitter_m, "jitter_deg": args.jitter_deg,
                "load_start": load_start, "load_end": load_avg(), "results": results,
-               "threads": torch.get_num_threads()}
+               "threads": torch.get_num_threads(), "overrides": overrides}
     if "kplanes" in results:
         payload.update(stock_psnr=results["kplanes"]["psnr"], stock_params=results["kplanes"]["params"],
                        stock_mb=results["kplanes"]["mb"])
