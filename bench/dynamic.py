@@ -47,8 +47,10 @@ def setup_torch(threads: int | None) -> None:
 
 
 def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: float = 0.05,
-            jitter_deg: float = 0.15) -> None:
-    """Render the flight once (cached under bench/out); ``jitter_*``: white per-frame pose noise."""
+            jitter_deg: float = 0.15, drift_scale: float = 1.0) -> None:
+    """Render the flight once (cached under bench/out); ``jitter_*``: white per-frame pose noise;
+    ``drift_scale`` scales the GNSS/IMU Gauss–Markov drift (0: poses consistent up to the jitter, as
+    after SfM)."""
     if (flight / "derived" / "poses.json").is_file():
         return
     from fields.dynamic_simscene import LineSpec, PoseNoise, write_line_flight
@@ -57,7 +59,11 @@ def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: floa
 
     world = make_world(seed=seed, dynamic=True)
     camera = Camera.from_fov(width, width * 3 // 4, 70.0, Mount(pitch_deg=-60.0))
-    noise = PoseNoise(seed=seed + 1, jitter_m=jitter_m, jitter_deg=jitter_deg)
+    base = PoseNoise()
+    noise = PoseNoise(gps_sigma_m=base.gps_sigma_m * drift_scale,
+                      gps_vertical_sigma_m=base.gps_vertical_sigma_m * drift_scale,
+                      attitude_sigma_deg=base.attitude_sigma_deg * drift_scale,
+                      seed=seed + 1, jitter_m=jitter_m, jitter_deg=jitter_deg)
     write_line_flight(flight, world, camera, LineSpec(frames=frames, seed=seed), noise, supersample=2)
 
 
@@ -104,6 +110,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: OMP_NUM_THREADS)")
     ap.add_argument("--jitter-m", type=float, default=0.05, help="white per-frame camera-centre noise, m")
     ap.add_argument("--jitter-deg", type=float, default=0.15, help="white per-frame attitude noise, deg")
+    ap.add_argument("--drift-scale", type=float, default=1.0,
+                    help="scale of the GNSS/IMU drift in the injected pose noise (0: none, SfM-like poses)")
     ap.add_argument("--flight", type=Path, default=None, help="flight folder (default bench/out/dynamic_...)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -119,9 +127,11 @@ def main() -> None:
     overrides = parse_overrides(args.set)
     jitter = (args.jitter_m, args.jitter_deg)
     tag = "" if jitter == (0.05, 0.15) else f"_jit{args.jitter_m:g}m{args.jitter_deg:g}deg"
+    tag += "" if args.drift_scale == 1.0 else f"_drift{args.drift_scale:g}"
     flight = args.flight or flight_dir(args.width, args.frames, tag)
     t0 = time.perf_counter()
-    prepare(flight, args.frames, args.width, jitter_m=args.jitter_m, jitter_deg=args.jitter_deg)
+    prepare(flight, args.frames, args.width, jitter_m=args.jitter_m, jitter_deg=args.jitter_deg,
+            drift_scale=args.drift_scale)
     dd = load_dynamic_flight(flight)
     train_idx, val_idx = split(dd, 2)
     load_start = load_avg()
@@ -147,7 +157,7 @@ def main() -> None:
               f"SSIM {ev['ssim']:.3f}, {r.step} steps in {r.train_s:.0f} s, {n} params; {load_avg()}", flush=True)
     payload = {"flight": str(flight), "frames": dd.n, "train_frames": len(train_idx), "val_frames": len(val_idx),
                "width": dd.data.camera.width, "height": dd.data.camera.height, "budget_s": args.budget_s,
-               "jitter_m": args.jitter_m, "jitter_deg": args.jitter_deg,
+               "jitter_m": args.jitter_m, "jitter_deg": args.jitter_deg, "drift_scale": args.drift_scale,
                "load_start": load_start, "load_end": load_avg(), "results": results,
                "threads": torch.get_num_threads(), "overrides": overrides}
     if "kplanes" in results:

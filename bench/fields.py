@@ -47,6 +47,9 @@ CONFIGS = {
     # bgstart + the mask grid and head at 3x the learning rate (a speckled, unconverged mask at 300 s)
     "hash-strat-bgstart-masklr3": {"encoding": "hash", "sampler": "stratified", "n_samples": 32,
                                    "mask_pos_fraction": 0.0, "mask_init_background": 0.99, "mask_lr_scale": 3.0},
+    # the default before session 6: a steeper learning-rate decay (ends at 0.1 lr instead of 0.3 lr)
+    "hash-strat-lrf01": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.0,
+                         "lr_final": 0.1},
     "hash-strat-bg384": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "background_resolution": 384},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
