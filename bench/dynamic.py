@@ -26,6 +26,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
+from bench.fields_ab import parse_variant  # noqa: E402
 
 
 def load_avg() -> str:
@@ -67,40 +68,6 @@ def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: floa
     write_line_flight(flight, world, camera, LineSpec(frames=frames, seed=seed), noise, supersample=2)
 
 
-def parse_overrides(items: list[str]) -> dict:
-    """``["features=32", "gate=false"]`` -> typed DynamicFitConfig options (the type of each default)."""
-    from dataclasses import fields
-
-    from fields.dynamic_training import DynamicFitConfig
-
-    defaults = {f.name: f.default for f in fields(DynamicFitConfig)}
-    out = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        if not sep or key not in defaults:
-            raise SystemExit(f"--set {item!r}: expected KEY=VALUE with KEY one of {sorted(defaults)}")
-        default = defaults[key]
-        if text.lower() == "none":
-            out[key] = None
-        elif isinstance(default, bool):
-            out[key] = text.lower() in ("1", "true", "yes")
-        elif isinstance(default, int):
-            out[key] = int(float(text))
-        elif isinstance(default, float) or (default is None and _is_number(text)):
-            out[key] = float(text)
-        else:
-            out[key] = text
-    return out
-
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--budget-s", type=float, default=300.0, help="training seconds per kind")
@@ -115,7 +82,8 @@ def main() -> None:
     ap.add_argument("--flight", type=Path, default=None, help="flight folder (default bench/out/dynamic_...)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="a DynamicFitConfig option for both kinds, e.g. features=32 (repeatable)")
+                    help="a DynamicFitConfig option for both kinds, value as JSON (features=32, gate=false, "
+                         "mask_init_background=null), repeatable")
     args = ap.parse_args()
 
     import torch
@@ -124,7 +92,7 @@ def main() -> None:
     from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split
 
     setup_torch(args.threads)
-    overrides = parse_overrides(args.set)
+    overrides = {k: v for item in args.set for k, v in parse_variant(":" + item)[1].items()}
     jitter = (args.jitter_m, args.jitter_deg)
     tag = "" if jitter == (0.05, 0.15) else f"_jit{args.jitter_m:g}m{args.jitter_deg:g}deg"
     tag += "" if args.drift_scale == 1.0 else f"_drift{args.drift_scale:g}"
