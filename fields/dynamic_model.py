@@ -20,6 +20,7 @@ from torch import nn
 from fields.field import Background
 from fields.kplanes import KPlanesConfig, KPlanesField, KPlanesFieldConfig
 from fields.model import SamplerConfig, make_sampler
+from fields.pose_drift import PoseDrift
 from fields.rendering import composite, distortion_loss, expected_depth, opacity, weights_from_density
 from fields.samplers import sample_points
 
@@ -55,7 +56,7 @@ class DynamicModel(nn.Module):
     """K-Planes field, background and sampler; :meth:`render_rays` is the rendering entry point."""
 
     def __init__(self, kind: str, field_config: KPlanesFieldConfig, sampler_config: SamplerConfig, ground_z: float,
-                 background_radius_m: float, t0_us: int = 0, span_us: int = 0):
+                 background_radius_m: float, t0_us: int = 0, span_us: int = 0, pose_knots: int = 0):
         super().__init__()
         if kind not in KINDS:
             raise ValueError(f"unknown dynamic kind {kind!r}; expected one of {KINDS}")
@@ -69,6 +70,8 @@ class DynamicModel(nn.Module):
         self.field = KPlanesField(field_config)
         self.background = Background(ground_z, background_radius_m)
         self.sampler = make_sampler(sampler_config)
+        #: learned time-smooth correction of the telemetry poses (None: poses taken as given)
+        self.pose_drift = PoseDrift(pose_knots) if pose_knots else None
 
     @property
     def extended(self) -> bool:
@@ -79,17 +82,26 @@ class DynamicModel(nn.Module):
         return {"kind": self.kind, "field": self.field_config.to_json(),
                 "sampler": {**asdict(self.sampler_config), "grid_shape": list(self.sampler_config.grid_shape)},
                 "ground_z": self.background.ground_z, "background_radius_m": self.background.radius_m,
-                "t0_us": self.t0_us, "span_us": self.span_us}
+                "t0_us": self.t0_us, "span_us": self.span_us,
+                "pose_knots": self.pose_drift.knots if self.pose_drift is not None else 0}
 
     @classmethod
     def from_description(cls, d: dict) -> DynamicModel:
         s = dict(d["sampler"])
         s["grid_shape"] = tuple(s["grid_shape"])
         return cls(d["kind"], KPlanesFieldConfig.from_json(d["field"]), SamplerConfig(**s), d["ground_z"],
-                   d["background_radius_m"], d.get("t0_us", 0), d.get("span_us", 0))
+                   d["background_radius_m"], d.get("t0_us", 0), d.get("span_us", 0), d.get("pose_knots", 0))
 
     def param_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+    def field_pose(self, cam_from_world: np.ndarray, time01: float) -> np.ndarray:
+        """The pose in the field's world of a *recorded* frame whose telemetry pose (OpenCV
+        ``cam_from_world``) was taken at ``time01``: the learned drift correction applied, if any.
+        Novel poses built around the scene are already in the field's world; do not pass them here."""
+        if self.pose_drift is None:
+            return np.asarray(cam_from_world, dtype=np.float64)
+        return self.pose_drift.correct_cam_from_world(cam_from_world, time01)
 
     def time01(self, t_unix_us: int | None) -> float:
         """Normalised scene time of a capture time (None: the flight's first frame)."""

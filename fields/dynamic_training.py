@@ -36,6 +36,7 @@ from fields.evaluation import MaskBox, match_boxes, psnr, ssim
 from fields.kplanes import cosine_separation
 from fields.mask_boxes import boxes_from_probabilities
 from fields.model import SamplerConfig
+from fields.pose_drift import knot_count
 from fields.scene import SceneBounds, scene_bounds
 from fields.synthesis import match_boxes as match_detections
 from fields.training import configure_threads, device, importance_weights, positive_pixels, schedule_progress
@@ -92,6 +93,14 @@ class DynamicFitConfig:
     cos_points: int = 4096
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
+    #: learn a time-smooth correction of the telemetry poses (:mod:`fields.pose_drift`) with one
+    #: knot per this many seconds of flight (None: take the poses as given)
+    pose_knot_s: float | None = None
+    #: Adam step sizes of the pose knots (decayed with the field's schedule): metres, radians
+    pose_lr_m: float = 5e-3
+    pose_lr_rad: float = 2e-4
+    #: weight of the knots' mean squared correction (m^2; anchors the gauge to the telemetry)
+    lambda_pose: float = 1e-4
     checkpoint_every_s: float = 60.0
     log_every_s: float = 10.0
 
@@ -125,13 +134,23 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
                            cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
+    knots = knot_count(dd.span_us / 1e6, cfg.pose_knot_s) if cfg.pose_knot_s else 0
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
-                         dd.t0_us, dd.span_us)
+                         dd.t0_us, dd.span_us, pose_knots=knots)
     return model, bounds, asdict(sizing)
 
 
 def _optimizer(model: DynamicModel, cfg: DynamicFitConfig):
-    return torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    """Adam; the pose knots (if any) in their own groups, each group's ``base_lr`` decayed alike."""
+    drift = model.pose_drift
+    pose_ids = {id(p) for p in drift.parameters()} if drift is not None else set()
+    groups = [{"params": [p for p in model.parameters() if id(p) not in pose_ids], "base_lr": cfg.lr}]
+    if drift is not None:
+        groups += [{"params": [drift.trans], "base_lr": cfg.pose_lr_m},
+                   {"params": [drift.rot], "base_lr": cfg.pose_lr_rad}]
+    for g in groups:
+        g["lr"] = g["base_lr"]
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
 
 
 def save_checkpoint(path: Path, model: DynamicModel, optim, step: int, train_s: float, cfg: DynamicFitConfig,
@@ -181,6 +200,8 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         optim = _optimizer(model, cfg)
         if ck.get("optim"):
             optim.load_state_dict(ck["optim"])
+            for g in optim.param_groups:  # checkpoints from before per-group step sizes
+                g.setdefault("base_lr", cfg.lr)
         step, train_s, curve = int(ck["step"]), float(ck["train_s"]), list(ck.get("curve", []))
         bounds = SceneBounds(**ck["bounds"]) if ck.get("bounds") else None
         sizing = ck.get("sizing")
@@ -220,15 +241,18 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     t_mark = time.perf_counter()
     loss_ema = None
     while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
-        lr = cfg.lr * cfg.lr_final ** progress()
+        decay = cfg.lr_final ** progress()
+        lr = cfg.lr * decay
         for g in optim.param_groups:
-            g["lr"] = lr
+            g["lr"] = g["base_lr"] * decay
         fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays - n_box,), device=dev, generator=gen)]
         pi = torch.randint(hw, (cfg.batch_rays - n_box,), device=dev, generator=gen)
         if n_box:
             k = torch.randint(len(pos_frame), (n_box,), device=dev, generator=gen)
             fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
         o, d = bank.rays(fi, pi)
+        if model.pose_drift is not None:
+            o, d = model.pose_drift.apply(o, d, t01[fi])
         target = images[fi, pi].float() / 255.0
         cls = masks[fi, pi]
         dyn = (cls > 0).float()
@@ -238,6 +262,8 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
                                 with_features=ext and cfg.lambda_cos > 0, generator=gen)
         loss_rgb = torch.mean(((res["rgb"] - target) ** 2).mean(-1) * mask_w)
         loss = loss_rgb + regularisers(model, cfg)
+        if model.pose_drift is not None and cfg.lambda_pose > 0:
+            loss = loss + cfg.lambda_pose * model.pose_drift.penalty()
         if cfg.lambda_dist > 0:
             loss = loss + cfg.lambda_dist * model.distortion(res)
         m_ok = has_mask[fi]
@@ -301,7 +327,8 @@ def evaluate_dynamic(model: DynamicModel, dd: DynamicFlightData, indices: list[i
     rows, ious, box_err, bg_err = [], [], [], []
     agreement = None  # synthesis-style matching: IoU >= 0.5, same class, people >= min_box_px tall
     for i in indices:
-        r = model.render_image(data.camera, data.cam_from_world[i], float(t01[i]))
+        # a recorded frame: at its telemetry pose, drift-corrected when the model learned a correction
+        r = model.render_image(data.camera, model.field_pose(data.cam_from_world[i], float(t01[i])), float(t01[i]))
         gt = data.images[i].numpy()
         row = {"frame": data.names[i], "t01": float(t01[i]), "psnr": psnr(r["rgb"], gt), "ssim": ssim(r["rgb"], gt)}
         inside = data.masks[i].numpy() > 0
