@@ -23,14 +23,19 @@ log = logging.getLogger(__name__)
 
 def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0, 40.0, 45.0, 50.0),
                       count: int = 0, seed: int = 0, max_outside_fraction: float = 0.1,
-                      checkpoint: str | Path | None = None, class_source: str = "labels") -> dict:
+                      checkpoint: str | Path | None = None, class_source: str = "labels",
+                      mask_threshold: float | None = None) -> dict:
     """Render ``count`` novel views (0: as many as the real training frames) and build the datasets.
 
     ``checkpoint``: the fitted field (None: ``derived/fields/static.pt``, else ``dynamic.pt``).
     ``altitudes_m`` and ``max_outside_fraction`` apply to static scenes only; a dynamic scene renders
     ceil(count / 3) trajectory points × (t − Δt, t, t + Δt). ``class_source``: "labels" (boxes'
-    classes voted by the real labels) or "mask" (the mask head's class).
+    classes voted by the real labels) or "mask" (the mask head's class). ``mask_threshold``: the
+    foreground probability a blob pixel needs (None: 0.6 for static views, 0.5 for dynamic ones; a
+    well-converged field's masks are sharper and take a higher cut, bench/RESULTS.md synthesis session 7).
     """
+    import dataclasses
+
     from export.paper_datasets import build_paper_datasets, labelled_samples, read_class_names
     from fields.field_views import DynamicViewRenderer, load_view_renderer
     from fields.label_transfer import LabelledFrames
@@ -62,12 +67,18 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
         kept_entries, dropped = _static_poses(renderer.model.background.ground_z, poses, altitudes_m, count, seed,
                                               max_outside_fraction)
         options = SynthOptions(rules=HIGH_ALTITUDE_RULES)
+    if mask_threshold is not None:
+        if not 0.0 < mask_threshold < 1.0:
+            raise ValueError(f"mask threshold must lie in (0, 1), got {mask_threshold}")
+        options = dataclasses.replace(options, rules=dataclasses.replace(options.rules, threshold=mask_threshold))
 
     def progress(i, n):
         if i % 10 == 0 or i == n:
             log.info("synthesised %d/%d views", i, n)
 
     labels_from = LabelledFrames.from_flight(flight) if class_source == "labels" else None
+    if isinstance(renderer, DynamicViewRenderer) and renderer.model.pose_drift is not None:
+        kept_entries, labels_from = _in_field_world(renderer.model, kept_entries, labels_from)
     report = synthesize(renderer, poses.camera, poses.origin, kept_entries, derived / "synth",
                         names, options, dropped=dropped, progress=progress, labels_from=labels_from,
                         max_dt_us=max_dt_us)
@@ -79,6 +90,25 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
             "unvoted_boxes": report.unvoted_boxes,
             "images_per_minute": round(report.images_per_minute, 2),
             "datasets": {k: str(v) for k, v in sets.items()}}
+
+
+def _in_field_world(model, entries, voters):
+    """Trajectory entries and voting frames (recorded telemetry poses) moved into the field's world
+    by the dynamic model's learned drift correction (:meth:`fields.dynamic_model.DynamicModel.field_pose`),
+    each at its own capture time."""
+    import copy
+    import dataclasses
+
+    moved = []
+    for e in entries:
+        e = copy.copy(e)
+        e.cam_from_world = model.field_pose(e.cam_from_world, model.time01(e.t_unix_us))
+        moved.append(e)
+    if voters is not None:
+        times = voters.times_us or [None] * len(voters.cam_from_world)
+        voters = dataclasses.replace(voters, cam_from_world=[model.field_pose(T, model.time01(t))
+                                                             for T, t in zip(voters.cam_from_world, times, strict=True)])
+    return moved, voters
 
 
 def _static_poses(ground_z: float, poses, altitudes_m, count: int, seed: int, max_outside_fraction: float):
@@ -128,6 +158,9 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--class-source", choices=("labels", "mask"), default="labels",
                    help="boxes' classes: voted by the real labels that see them (default) or the mask head's")
+    p.add_argument("--mask-threshold", type=float, default=None,
+                   help="foreground probability of a blob pixel (default 0.6 static, 0.5 dynamic; ~0.8 for a "
+                        "field fitted ~3,000+ steps, whose masks are sharper)")
     p.set_defaults(func=run_cli)
 
 
@@ -137,7 +170,7 @@ def run_cli(args) -> int:
     if args.count < 0:
         raise ValueError(f"--count must be >= 0, got {args.count}")
     s = synthesize_flight(args.flight, parse_altitudes(args.altitudes), args.count, args.seed, args.max_outside,
-                          class_source=args.class_source)
+                          class_source=args.class_source, mask_threshold=args.mask_threshold)
     print(f"{args.flight}/derived/synth: {s['images']} views, {s['boxes']} boxes {s['boxes_per_class']}, "
           f"{s['dropped_poses']} poses dropped; datasets: {', '.join(s['datasets'])}")
     return 0

@@ -84,3 +84,30 @@ def test_replay_fits_kplanes_for_walking_people_and_synthesises_from_it(fitted_d
     assert synth["images"] == 3
     with pytest.raises(ValueError, match="field kind"):
         stage_fit(flight, ReplayOptions(kind="nerf"))
+
+
+def test_dynamic_synthesis_renders_at_drift_corrected_poses(fitted_dynamic_flight, tmp_path):
+    """A field that learned a pose-drift correction renders the trajectory views (and lets the real
+    labels vote) at the corrected poses, and the synthetic poses file says so."""
+    import shutil
+
+    from fields.dynamic_training import load_dynamic_checkpoint
+
+    flight = tmp_path / "f"
+    shutil.copytree(fitted_dynamic_flight, flight)
+    fit_dynamic(load_dynamic_flight(flight), DynamicFitConfig(kind="kplanes-ext", pose_knot_s=2.0, **TINY),
+                out_dir=flight / "derived" / "fields")
+    model, _ = load_dynamic_checkpoint(flight / "derived" / "fields" / "dynamic.pt", "cpu")
+    assert model.pose_drift is not None
+    synthesize_flight(flight, count=3)
+    real = {e.frame: e for e in PosesFile.load(flight / "derived" / "poses.json").posed()}
+    for e in PosesFile.load(flight / "derived" / "synth" / "poses.json").frames:
+        telemetry = real[e.extra["from_frame"]].cam_from_world
+        np.testing.assert_allclose(e.cam_from_world, model.field_pose(telemetry, model.time01(e.t_unix_us)),
+                                   atol=1e-6)
+        assert not np.allclose(e.cam_from_world, telemetry, atol=1e-7)
+
+
+def test_mask_threshold_outside_0_1_is_rejected(fitted_dynamic_flight):
+    with pytest.raises(ValueError, match="mask threshold"):
+        synthesize_flight(fitted_dynamic_flight, count=3, mask_threshold=1.5)
