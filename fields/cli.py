@@ -3,7 +3,8 @@
 ``fit FLIGHT --kind static`` reads ``FLIGHT/derived/poses.json`` and writes ``FLIGHT/derived/fields/``:
 ``static.pt`` (checkpoint, resumable with ``--resume``), ``fit.json`` (held-out PSNR/SSIM and mask
 box IoU, training curve, parameter count, MB, sizing reasoning) and ``heldout/`` previews.
-``render FLIGHT --poses POSES.json --out DIR [--masks]`` writes ``NAME.png`` per pose (NAME = the
+``render FLIGHT --poses POSES.json --out DIR [--masks]`` writes ``NAME.png`` per pose (recorded poses, i.e.
+any ``source`` but ``"novel"``, get a dynamic field's learned pose-drift correction; NAME = the
 pose's ``frame`` stem, else ``pose_NNNNN`` by index) and with ``--masks`` ``NAME_mask.png``
 (class id per pixel, 0 = background) and YOLO labels ``labels/NAME.txt`` from the mask blobs.
 """
@@ -34,6 +35,9 @@ def register(subparsers) -> None:
     p.add_argument("--holdout-every", type=int, default=None,
                    help="hold out every k-th frame (0: none; default 8 static, 2 dynamic)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
+    p.add_argument("--pose-knot-s", type=float, default=None,
+                   help="dynamic fits: learn a time-smooth pose-drift correction, one knot per this many "
+                        "seconds of flight (default: none, the poses as given)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from derived/fields/static.pt")
     p.add_argument("--out", type=Path, default=None, help="output folder (default FLIGHT/derived/fields)")
@@ -120,7 +124,11 @@ def run_render(args) -> int:
             log.warning("pose %d has no cam_from_world (%s): skipped", i, entry.reason)
             continue
         name = Path(entry.frame).stem if entry.frame else f"pose_{i:05d}"
-        rgb, prob = renderer.render_view(camera, entry.cam_from_world, entry.t_unix_us, with_mask=args.masks)
+        T = entry.cam_from_world
+        drift = getattr(renderer.model, "pose_drift", None)
+        if drift is not None and entry.source != "novel":  # a recorded pose: into the field's world
+            T = renderer.model.field_pose(T, renderer.model.time01(entry.t_unix_us))
+        rgb, prob = renderer.render_view(camera, T, entry.t_unix_us, with_mask=args.masks)
         cv2.imwrite(str(out / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if args.masks:
             cv2.imwrite(str(out / f"{name}_mask.png"), np.argmax(prob, axis=-1).astype(np.uint8))

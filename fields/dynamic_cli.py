@@ -67,7 +67,8 @@ def auto_kind(flight: Path, out: Path):
 def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict | None = None,
                        budget_s: float | None = 300.0, iters: int | None = None, holdout_every: int = 2,
                        threads: int | None = None, seed: int = 0, samples: int | None = None,
-                       batch_rays: int | None = None, resume: bool = False) -> dict:
+                       batch_rays: int | None = None, resume: bool = False,
+                       pose_knot_s: float | None = None) -> dict:
     """Fit a ``kplanes`` or ``kplanes-ext`` field → ``out/dynamic.pt`` + ``fit.json`` (+ held-out previews).
 
     Returns a summary: steps, train_s, params, mb, held-out psnr / ssim / box IoU (None without
@@ -78,7 +79,7 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
 
     dd = dd if dd is not None else load_dynamic_flight(flight)
     cfg = DynamicFitConfig(kind=kind, budget_s=budget_s or None, holdout_every=holdout_every, threads=threads,
-                           seed=seed)
+                           seed=seed, pose_knot_s=pose_knot_s)
     if iters is not None:
         cfg.iters = iters
     if samples is not None:
@@ -110,7 +111,8 @@ def run(args, out: Path) -> int | None:
     every = 2 if args.holdout_every is None else args.holdout_every
     f = fit_dynamic_flight(args.flight, out, kind, dd, choice, budget_s=args.budget_s, iters=args.iters,
                            holdout_every=every, threads=args.threads, seed=args.seed, samples=args.samples,
-                           batch_rays=args.batch_rays, resume=args.resume)
+                           batch_rays=args.batch_rays, resume=args.resume,
+                           pose_knot_s=getattr(args, "pose_knot_s", None))
     msg = (f"{out}: {kind}, {f['steps']} steps in {f['train_s']:.0f} s, {f['params']} params "
            f"({f['mb']:.1f} MB)")
     if f["heldout_psnr"] is not None:

@@ -98,7 +98,7 @@ class DynamicFitConfig:
     pose_knot_s: float | None = None
     #: Adam step sizes of the pose knots (decayed with the field's schedule): metres, radians
     pose_lr_m: float = 5e-3
-    pose_lr_rad: float = 2e-4
+    pose_lr_rad: float = 5e-5
     #: weight of the knots' mean squared correction (m^2; anchors the gauge to the telemetry)
     lambda_pose: float = 1e-4
     checkpoint_every_s: float = 60.0
@@ -377,7 +377,8 @@ def write_dynamic_fit_json(path: Path, result: DynamicFitResult, cfg: DynamicFit
                "train_s": round(result.train_s, 2), "params": n, "mb": round(n * 4 / 1e6, 2),
                "planes": result.model.field_config.planes.to_json(), "sizing": result.sizing,
                "bounds": result.bounds.to_json() if result.bounds else None, "heldout": heldout,
-               "kind_choice": kind_choice, "curve": result.curve, "config": asdict(cfg)}
+               "kind_choice": kind_choice, "curve": result.curve, "config": asdict(cfg),
+               "pose_drift": result.model.pose_drift.summary() if result.model.pose_drift is not None else None}
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1, default=float) + "\n")
     os.replace(tmp, path)

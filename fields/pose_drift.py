@@ -52,7 +52,8 @@ def rotate(rotvec: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 class PoseDrift(nn.Module):
-    """``knots`` (K, 2, 3): per knot a rotation vector (rad) and a centre translation (m), world ENU."""
+    """``rot`` (K, 3): per knot a world-frame rotation vector (rad); ``trans`` (K, 3): a camera-centre
+    translation (ENU m). Both start at zero (the telemetry poses)."""
 
     def __init__(self, knots: int):
         super().__init__()

@@ -115,7 +115,7 @@ def test_gradient_descent_recovers_a_smooth_drift_and_corrects_heldout_frames():
     train, held = fi % 2 == 0, fi % 2 == 1
     fit = PoseDrift(5)
     before = _misses(fit, centres[fi], d_telemetry, t01[fi], points).detach()
-    # step sizes per unit, as the fitter's: metres and radians
+    # separate step sizes for metres and radians (one lr for both lets the rotation oscillate)
     opt = torch.optim.Adam([{"params": [fit.trans], "lr": 1e-2}, {"params": [fit.rot], "lr": 2e-4}])
     decay = torch.optim.lr_scheduler.ExponentialLR(opt, 0.1 ** (1 / 1000))
     for _ in range(1000):
