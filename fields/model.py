@@ -175,7 +175,8 @@ class StaticModel(nn.Module):
     def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, image_idx: torch.Tensor | None = None,
                     train: bool = False, with_mask: bool = True, generator=None) -> dict:
         """Render R rays: ``rgb`` (R,3), ``acc`` (R,1), ``depth`` (R,1), ``mask_probs`` (R,C+1),
-        and for the losses ``weights`` (R,S) and ``t_norm`` (R,S+1) (edges scaled to [0,1] per ray).
+        and for the losses ``weights`` (R,S), ``sample_z`` (R,S) (the samples' ENU height, m) and
+        ``t_norm`` (R,S+1) (edges scaled to [0,1] per ray).
 
         In eval mode without gradients (rendering), three shortcuts, each bounded by a stated error:
         samples in cells the skip grid marks empty get density 0 (:meth:`build_skip_grid`), and
@@ -197,7 +198,7 @@ class StaticModel(nn.Module):
             rgb = f.color(geo, d_rep, i_rep)
         bg = self.background(origins, dirs)
         res = {"rgb": composite(w, rgb.view(r, s, 3), bg), "acc": opacity(w),
-               "depth": expected_depth(w, mid, edges[:, -1]), "weights": w}
+               "depth": expected_depth(w, mid, edges[:, -1]), "weights": w, "sample_z": pts.view(r, s, 3)[..., 2]}
         span = (edges[:, -1:] - edges[:, :1]).clamp_min(1e-6)
         res["t_norm"] = (edges - edges[:, :1]) / span
         if with_mask:

@@ -82,6 +82,10 @@ class FitConfig:
     mask_log2_table: int = 16
     #: share of each ray batch drawn from pixels inside label boxes (0: uniform over all pixels)
     mask_pos_fraction: float = 0.0
+    #: a box pixel with under 10 % of its rendering weight (current geometry, no gradient) higher than
+    #: this above the ground sees the ground around the person, not the person: it is taught as
+    #: background (None: every box pixel is the box's class, the paper's filled boxes)
+    mask_box_min_height_m: float | None = None
     #: share of the budget (seconds; iterations without a budget) for a last phase that trains only
     #: the mask on the frozen geometry: the live samples of ``mask_phase_rays`` rays are computed once,
     #: then minibatches train the mask grid and head on them (measured not to help at 60 s: RESULTS.md)
@@ -350,9 +354,15 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
             if joint_mask:
                 m_ok = has_mask[fi]
                 if m_ok.any():
-                    tgt = masks[fi, pi][m_ok]
+                    boxed = masks[fi, pi]
+                    tgt = boxed
+                    if cfg.mask_box_min_height_m is not None:
+                        tgt = ground_in_box_as_background(boxed, res["weights"].detach(), res["sample_z"],
+                                                          model.background.ground_z, cfg.mask_box_min_height_m)
+                    tgt, boxed = tgt[m_ok], boxed[m_ok]
+                    # importance weights follow how the ray was drawn (inside a box or not)
                     loss = loss + cfg.lambda_mask * _mask_nll(res["mask_probs"][m_ok], tgt,
-                                                              fg_w[tgt] * iw[(tgt > 0).long()])
+                                                              fg_w[tgt] * iw[(boxed > 0).long()])
             if cfg.lambda_empty > 0:
                 lo, hi = model.field.lo, model.field.hi
                 u = torch.rand(4096, 3, device=dev, generator=gen)
@@ -447,6 +457,20 @@ def importance_weights(batch: int, n_box: int, n_all: int, n_pos: int, dev) -> t
     one (B_u/B)/N."""
     n_uni = batch - n_box
     return torch.tensor([batch / n_uni, batch / (n_uni + n_box * n_all / max(n_pos, 1))], device=dev)
+
+
+def ground_in_box_as_background(target: torch.Tensor, weights: torch.Tensor, sample_z: torch.Tensor,
+                                ground_z: float, min_height_m: float, min_share: float = 0.1) -> torch.Tensor:
+    """Class targets (R,) with box pixels (class > 0) that see (almost) only ground set to background (0).
+
+    A filled box also covers the ground beside and behind its person, and each view's box covers
+    different ground, so the mask would learn a halo around the feet. A box pixel counts as ground
+    when less than ``min_share`` of its rendering weight (``weights`` (R, S), no gradient needed) lies
+    at samples higher than ``min_height_m`` above ``ground_z`` (``sample_z`` (R, S), ENU metres). A
+    share, not the expected depth: a pixel half on a head and half on far ground stays the person's."""
+    above = (weights * (sample_z > ground_z + min_height_m)).sum(-1)
+    on_ground = torch.isfinite(above) & (above < min_share)
+    return torch.where((target > 0) & on_ground, torch.zeros_like(target), target)
 
 
 def _mask_nll(probs: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
