@@ -7,7 +7,10 @@ world with walking people (seed 0), a slightly irregular straight pass at 15 m l
 validation; poses carry injected telemetry-like noise (GNSS/IMU Gauss–Markov drift + per-frame
 jitter, see fields.dynamic_simscene.PoseNoise). Both kinds use the same DynamicFitConfig except
 ``kind`` and stop at the same training budget (evaluation time not counted). Reports the mean
-held-out PSNR / SSIM over all validation frames, PSNR inside person boxes, steps, parameters, MB.
+held-out PSNR / SSIM over all validation frames, PSNR inside person boxes, steps, parameters, MB,
+and the pose errors against the simulator's true poses (as given, and as rendered after the learned
+pose-drift correction, ``DynamicFitConfig.pose_knot_s``: on by default since session 7; off with
+``--set pose_knot_s=null``).
 
     uavsim bench dynamic -- [--budget-s 300] [--frames 80] [--width 160] [--json OUT]
     uavsim bench dynamic -- --kinds kplanes --set features=32   # one option changed for both kinds

@@ -36,8 +36,8 @@ def register(subparsers) -> None:
                    help="hold out every k-th frame (0: none; default 8 static, 2 dynamic)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
     p.add_argument("--pose-knot-s", type=float, default=None,
-                   help="dynamic fits: learn a time-smooth pose-drift correction, one knot per this many "
-                        "seconds of flight (default: none, the poses as given)")
+                   help="dynamic fits: learn a time-smooth pose-drift correction with one knot per this many "
+                        "seconds of flight (default 1; 0: take the poses as given)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from derived/fields/static.pt")
     p.add_argument("--out", type=Path, default=None, help="output folder (default FLIGHT/derived/fields)")

@@ -71,6 +71,8 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
                        pose_knot_s: float | None = None) -> dict:
     """Fit a ``kplanes`` or ``kplanes-ext`` field → ``out/dynamic.pt`` + ``fit.json`` (+ held-out previews).
 
+    ``pose_knot_s``: spacing of the learned pose-drift knots, s (None: the config default; 0: none).
+
     Returns a summary: steps, train_s, params, mb, held-out psnr / ssim / box IoU (None without
     held-out frames). ``dd``: the loaded timed flight (loaded here when None).
     """
@@ -79,7 +81,9 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
 
     dd = dd if dd is not None else load_dynamic_flight(flight)
     cfg = DynamicFitConfig(kind=kind, budget_s=budget_s or None, holdout_every=holdout_every, threads=threads,
-                           seed=seed, pose_knot_s=pose_knot_s)
+                           seed=seed)
+    if pose_knot_s is not None:  # 0: take the poses as given
+        cfg.pose_knot_s = pose_knot_s or None
     if iters is not None:
         cfg.iters = iters
     if samples is not None:

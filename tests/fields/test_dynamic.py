@@ -426,7 +426,9 @@ def test_fit_with_pose_drift_moves_the_knots_and_round_trips(dynamic_flight, tmp
     again = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", pose_knot_s=2.0, **{**TINY, "iters": 5}),
                         out_dir=tmp_path, resume=True)
     assert again.step == 5 and again.model.pose_drift.knots == 4
-    no_drift = _model(dd, "kplanes")
+    from fields.dynamic_training import build_model
+
+    no_drift = build_model(dd, list(range(dd.n)), DynamicFitConfig(kind="kplanes", pose_knot_s=None, **TINY), None)[0]
     assert no_drift.pose_drift is None and np.array_equal(no_drift.field_pose(T, 0.3), T)
 
 
