@@ -149,9 +149,11 @@ def main() -> None:
         ev = evaluate_dynamic(r.model, dd, val_idx, out_dir=OUT_DIR / f"dynamic_{kind}{tag}_heldout")
         n = r.model.param_count()
         truth = flight.with_name(flight.name + ".truth.json")
-        poses = {"train": pose_errors(r.model, dd, train_idx, truth), "heldout": pose_errors(r.model, dd, val_idx, truth),
+        poses = {"train": pose_errors(r.model, dd, train_idx, truth),
+                 "heldout": pose_errors(r.model, dd, val_idx, truth),
                  "drift": r.model.pose_drift.summary() if r.model.pose_drift is not None else None}
-        results[kind] = {"poses": poses, "psnr": ev["psnr"], "ssim": ev["ssim"], "box_psnr": ev["box_psnr"], "bg_psnr": ev["bg_psnr"],
+        results[kind] = {"poses": poses, "psnr": ev["psnr"], "ssim": ev["ssim"], "box_psnr": ev["box_psnr"],
+                         "bg_psnr": ev["bg_psnr"],
                          "box_fraction": ev["box_fraction"],
                          "train_psnr_end": r.curve[-1]["train_psnr"] if r.curve else None,
                          "box_iou_mean": ev["box_iou_mean"], "steps": r.step, "train_s": round(r.train_s, 1),

@@ -106,8 +106,8 @@ def _in_field_world(model, entries, voters):
         moved.append(e)
     if voters is not None:
         times = voters.times_us or [None] * len(voters.cam_from_world)
-        voters = dataclasses.replace(voters, cam_from_world=[model.field_pose(T, model.time01(t))
-                                                             for T, t in zip(voters.cam_from_world, times, strict=True)])
+        corrected = [model.field_pose(T, model.time01(t)) for T, t in zip(voters.cam_from_world, times, strict=True)]
+        voters = dataclasses.replace(voters, cam_from_world=corrected)
     return moved, voters
 
 

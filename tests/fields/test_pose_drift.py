@@ -1,7 +1,6 @@
 """Time-smooth pose corrections (fields.pose_drift): rotation maths, knot interpolation, pose/ray
 agreement, recovery of a known drift, and the dynamic fitter with corrections on."""
 
-import math
 
 import numpy as np
 import pytest
