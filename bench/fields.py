@@ -50,7 +50,7 @@ CONFIGS = {
     # the default before session 6: a steeper learning-rate decay (ends at 0.1 lr instead of 0.3 lr)
     "hash-strat-lrf01": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.0,
                          "lr_final": 0.1},
-    # box pixels whose ray ends < 10 cm above the ground are taught as background (the ground inside a box)
+    # box pixels with < 10 % of their weight over 10 cm above the ground are taught as background
     "hash-strat-groundcut": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.0,
                              "mask_box_min_height_m": 0.1},
     "hash-strat-bg384": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "background_resolution": 384},

@@ -125,9 +125,8 @@ def run_render(args) -> int:
             continue
         name = Path(entry.frame).stem if entry.frame else f"pose_{i:05d}"
         T = entry.cam_from_world
-        drift = getattr(renderer.model, "pose_drift", None)
-        if drift is not None and entry.source != "novel":  # a recorded pose: into the field's world
-            T = renderer.model.field_pose(T, renderer.model.time01(entry.t_unix_us))
+        if entry.source != "novel":  # a recorded pose: into the field's world
+            T = renderer.field_pose(T, entry.t_unix_us)
         rgb, prob = renderer.render_view(camera, T, entry.t_unix_us, with_mask=args.masks)
         cv2.imwrite(str(out / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if args.masks:

@@ -116,7 +116,7 @@ def run(args, out: Path) -> int | None:
     f = fit_dynamic_flight(args.flight, out, kind, dd, choice, budget_s=args.budget_s, iters=args.iters,
                            holdout_every=every, threads=args.threads, seed=args.seed, samples=args.samples,
                            batch_rays=args.batch_rays, resume=args.resume,
-                           pose_knot_s=getattr(args, "pose_knot_s", None))
+                           pose_knot_s=args.pose_knot_s)
     msg = (f"{out}: {kind}, {f['steps']} steps in {f['train_s']:.0f} s, {f['params']} params "
            f"({f['mb']:.1f} MB)")
     if f["heldout_psnr"] is not None:

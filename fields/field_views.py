@@ -33,6 +33,11 @@ class FieldViewRenderer:
                      with_mask: bool) -> dict:
         return self.model.render_rays(origins, dirs, None, train=False, with_mask=with_mask)
 
+    def field_pose(self, cam_from_world: np.ndarray, t_unix_us: int | None) -> np.ndarray:
+        """The field-world pose of a *recorded* frame's telemetry pose (OpenCV ``cam_from_world``) taken
+        at ``t_unix_us``: unchanged for a static field (novel poses never need this)."""
+        return np.asarray(cam_from_world, dtype=np.float64)
+
     def render_view(self, camera: Camera, cam_from_world: np.ndarray, t_unix_us: int | None = None,
                     with_mask: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """RGB (H,W,3) uint8 and class probabilities (H,W,C+1), channel 0 background (None without mask)."""
@@ -73,6 +78,10 @@ class DynamicViewRenderer(FieldViewRenderer):
                      with_mask: bool) -> dict:
         times01 = torch.full((origins.shape[0],), self.model.time01(t_unix_us), device=origins.device)
         return self.model.render_rays(origins, dirs, times01, train=False, with_mask=with_mask)
+
+    def field_pose(self, cam_from_world: np.ndarray, t_unix_us: int | None) -> np.ndarray:
+        """The recorded pose with the field's learned pose-drift correction at its time, if any."""
+        return self.model.field_pose(cam_from_world, self.model.time01(t_unix_us))
 
 
 def load_view_renderer(checkpoint: str | Path | None, flight: str | Path,

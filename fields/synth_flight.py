@@ -77,8 +77,8 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
             log.info("synthesised %d/%d views", i, n)
 
     labels_from = LabelledFrames.from_flight(flight) if class_source == "labels" else None
-    if isinstance(renderer, DynamicViewRenderer) and renderer.model.pose_drift is not None:
-        kept_entries, labels_from = _in_field_world(renderer.model, kept_entries, labels_from)
+    if isinstance(renderer, DynamicViewRenderer):  # trajectory views sit on recorded poses
+        kept_entries, labels_from = _in_field_world(renderer, kept_entries, labels_from)
     report = synthesize(renderer, poses.camera, poses.origin, kept_entries, derived / "synth",
                         names, options, dropped=dropped, progress=progress, labels_from=labels_from,
                         max_dt_us=max_dt_us)
@@ -92,21 +92,21 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
             "datasets": {k: str(v) for k, v in sets.items()}}
 
 
-def _in_field_world(model, entries, voters):
+def _in_field_world(renderer, entries, voters):
     """Trajectory entries and voting frames (recorded telemetry poses) moved into the field's world
-    by the dynamic model's learned drift correction (:meth:`fields.dynamic_model.DynamicModel.field_pose`),
-    each at its own capture time."""
+    (:meth:`fields.field_views.FieldViewRenderer.field_pose`: a learned pose-drift correction), each
+    at its own capture time."""
     import copy
     import dataclasses
 
     moved = []
     for e in entries:
         e = copy.copy(e)
-        e.cam_from_world = model.field_pose(e.cam_from_world, model.time01(e.t_unix_us))
+        e.cam_from_world = renderer.field_pose(e.cam_from_world, e.t_unix_us)
         moved.append(e)
     if voters is not None:
         times = voters.times_us or [None] * len(voters.cam_from_world)
-        corrected = [model.field_pose(T, model.time01(t)) for T, t in zip(voters.cam_from_world, times, strict=True)]
+        corrected = [renderer.field_pose(T, t) for T, t in zip(voters.cam_from_world, times, strict=True)]
         voters = dataclasses.replace(voters, cam_from_world=corrected)
     return moved, voters
 
