@@ -70,7 +70,7 @@ def stage_fit(flight: Path, opts: ReplayOptions) -> dict:
     """The scene's field: static (hash grid + mask) or, for moving people, extended K-Planes (``opts.kind``)."""
     from fields.data import load_flight
     from fields.dynamic_cli import auto_kind, fit_dynamic_flight
-    from fields.training import FitConfig, evaluate_frames, fit, write_fit_json
+    from fields.training import FitConfig, evaluate_heldout, fit, write_fit_json
 
     if opts.kind not in ("auto", "static", "kplanes", "kplanes-ext"):
         raise ValueError(f"field kind must be auto, static, kplanes or kplanes-ext, got {opts.kind!r}")
@@ -89,7 +89,7 @@ def stage_fit(flight: Path, opts: ReplayOptions) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     result = fit(data, cfg, out_dir=out, flight=flight)
     _, test = data.split(cfg.holdout_every)
-    heldout = evaluate_frames(result.model, data, test, out_dir=out / "heldout") if test else None
+    heldout = evaluate_heldout(result.model, data, test, out_dir=out / "heldout")
     write_fit_json(out / "fit.json", result, cfg, heldout)
     return {"kind": "static", "kind_reason": None if choice is None else choice["reason"],
             "checkpoint": str(out / "static.pt"),

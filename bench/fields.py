@@ -10,12 +10,14 @@ training frames). At the end, mask box IoU on all held-out frames at full resolu
 bench/out/fields_masks_CONFIG.npz and the model is saved as bench/out/fields_CONFIG.pt (input of
 bench/synthesis.py). ``--rescore RULES`` scores other ``BoxRules`` on the kept masks without
 rendering (the 15 m box IoU, and one-to-one recall / precision for people >= 6 px tall as
-bench/synthesis.py scores its views). Evaluation renders
+bench/synthesis.py scores its views); ``--calibrate`` prints the mask threshold ``uavsim fit`` would
+calibrate on them (:mod:`fields.mask_calibration`). Evaluation renders
 at half resolution (160x120, truth area-averaged from 320x240) to keep the benchmark affordable
 on a busy 2-core machine; evaluation time is not counted as training time.
 
     python bench/fields.py [--budget-s 300] [--configs hash-strat,hash-occ,planes-strat,planes-occ]
     python bench/fields.py --configs hash-strat --rescore threshold=0.4,relative_threshold=0.5
+    python bench/fields.py --configs hash-strat --calibrate
 """
 
 from __future__ import annotations
@@ -140,7 +142,14 @@ def main() -> None:
     ap.add_argument("--rescore", action="append", default=[],
                     help="no rendering: BoxRules overrides key=value,... scored on the masks kept in "
                          "bench/out/fields_masks_CONFIG.npz (repeatable; '' = the defaults)")
+    ap.add_argument("--calibrate", action="store_true",
+                    help="no rendering: the mask threshold `uavsim fit` would calibrate on the masks kept in "
+                         "bench/out/fields_masks_CONFIG.npz (fields.mask_calibration)")
     args = ap.parse_args()
+    if args.calibrate:
+        for name in args.configs.split(","):
+            calibrate_masks(name)
+        return
     if args.rescore:
         for name in args.configs.split(","):
             rescore_masks(name, args.rescore)
@@ -169,7 +178,7 @@ def main() -> None:
 
     results = []
     for name in args.configs.split(","):
-        spec = CONFIGS[name]
+        spec = {} if args.evaluate else CONFIGS[name]  # --evaluate: any bench/out/fields_NAME.pt
         cfg = FitConfig(budget_s=args.budget_s, iters=10**7, threads=args.threads, **spec)
         points = []
 
@@ -270,6 +279,18 @@ def score_masks(saved, rules, min_box_px: float = 6.0) -> dict:
             "box_iou_ge_0.5": round(float(np.mean(np.asarray(ious) >= 0.5)), 3) if ious else None,
             "boxes_evaluated": len(ious), "pred_boxes": pred_n, "recall": round(total.recall, 3),
             "precision": round(total.precision, 3), "mean_iou": round(total.mean_iou, 3)}
+
+
+def calibrate_masks(name: str) -> None:
+    """Print :func:`fields.mask_calibration.calibrate_threshold` on the kept held-out masks of ``name``."""
+    from fields.mask_boxes import MaskBox
+    from fields.mask_calibration import calibrate_threshold
+
+    saved = np.load(OUT_DIR / f"fields_masks_{name}.npz")
+    probs = {int(k.split("_", 1)[1]): saved[k] for k in saved.files if k.startswith("prob_")}
+    truth = {i: [MaskBox(int(c), float(x0), float(y0), float(x1), float(y1), 0, 1.0)
+                 for c, x0, y0, x1, y1 in saved[f"truth_{i}"]] for i in probs}
+    print(json.dumps({"config": name, **(calibrate_threshold(probs, truth) or {})}), flush=True)
 
 
 def rescore_masks(name: str, rule_texts: list[str]) -> None:

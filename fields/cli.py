@@ -77,7 +77,7 @@ def run_fit(args) -> int:
     if args.holdout_every is None:
         args.holdout_every = 8
     from fields.data import load_flight
-    from fields.training import FitConfig, evaluate_frames, fit, write_fit_json
+    from fields.training import FitConfig, evaluate_heldout, fit, write_fit_json
 
     data = load_flight(args.flight)
     cfg = FitConfig(budget_s=args.budget_s or None, iters=args.iters, holdout_every=args.holdout_every,
@@ -89,7 +89,7 @@ def run_fit(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     result = fit(data, cfg, out_dir=out, flight=args.flight, resume=args.resume)
     _, test = data.split(cfg.holdout_every)
-    heldout = evaluate_frames(result.model, data, test, out_dir=out / "heldout") if test else None
+    heldout = evaluate_heldout(result.model, data, test, out_dir=out / "heldout")
     write_fit_json(out / "fit.json", result, cfg, heldout)
     n = result.model.param_count()
     msg = f"{out}: {result.step} steps in {result.train_s:.0f} s, {n} params ({n * 4 / 1e6:.1f} MB)"

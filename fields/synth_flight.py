@@ -10,7 +10,9 @@ in the agent's processing step, when a flight has none). By default they also de
 box's class (``class_source="labels"``, :mod:`fields.label_transfer`): the mask finds the people,
 the real labels that see them name the class; in a dynamic scene only real frames within 1.5 frame
 intervals of the view's time vote. Static views take their boxes with
-:data:`fields.synthesis.HIGH_ALTITUDE_RULES`, dynamic views (flown altitude) with the default rules.
+:data:`fields.synthesis.HIGH_ALTITUDE_RULES` at the foreground threshold ``uavsim fit`` calibrated on
+the held-out frames (:mod:`fields.mask_calibration`; 0.6 without one), dynamic views (flown
+altitude) with the default rules.
 """
 
 from __future__ import annotations
@@ -31,8 +33,10 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
     ``altitudes_m`` and ``max_outside_fraction`` apply to static scenes only; a dynamic scene renders
     ceil(count / 3) trajectory points × (t − Δt, t, t + Δt). ``class_source``: "labels" (boxes'
     classes voted by the real labels) or "mask" (the mask head's class). ``mask_threshold``: the
-    foreground probability a blob pixel needs (None: 0.6 for static views, 0.5 for dynamic ones; a
-    well-converged field's masks are sharper and take a higher cut, bench/RESULTS.md synthesis session 7).
+    foreground probability a blob pixel needs. None: for static views the threshold ``uavsim fit``
+    calibrated on the held-out frames (``fit.json`` beside the checkpoint; :mod:`fields.mask_calibration`),
+    0.6 without one; 0.5 for dynamic views. A well-converged field's masks are sharper and take a
+    higher cut (bench/RESULTS.md, synthesis sessions 7-8).
     """
     import dataclasses
 
@@ -67,10 +71,16 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
         kept_entries, dropped = _static_poses(renderer.model.background.ground_z, poses, altitudes_m, count, seed,
                                               max_outside_fraction)
         options = SynthOptions(rules=HIGH_ALTITUDE_RULES)
+    threshold_source = "option"
+    if mask_threshold is None:
+        if not isinstance(renderer, DynamicViewRenderer):
+            mask_threshold = calibrated_threshold(Path(checkpoint) if checkpoint else fields_dir / "static.pt")
+        threshold_source = "default" if mask_threshold is None else "fit.json"
     if mask_threshold is not None:
         if not 0.0 < mask_threshold < 1.0:
             raise ValueError(f"mask threshold must lie in (0, 1), got {mask_threshold}")
         options = dataclasses.replace(options, rules=dataclasses.replace(options.rules, threshold=mask_threshold))
+    log.info("mask threshold %.2f (%s)", options.rules.threshold, threshold_source)
 
     def progress(i, n):
         if i % 10 == 0 or i == n:
@@ -89,7 +99,26 @@ def synthesize_flight(flight: str | Path, altitudes_m: tuple[float, ...] = (35.0
             "class_source": report.class_source, "relabelled_boxes": report.relabelled_boxes,
             "unvoted_boxes": report.unvoted_boxes,
             "images_per_minute": round(report.images_per_minute, 2),
+            "mask_threshold": options.rules.threshold, "mask_threshold_source": threshold_source,
             "datasets": {k: str(v) for k, v in sets.items()}}
+
+
+def calibrated_threshold(checkpoint: Path) -> float | None:
+    """The high-altitude mask threshold ``uavsim fit`` calibrated on the held-out frames, from the
+    ``fit.json`` beside ``checkpoint`` (None: no such file, or nothing was calibrated)."""
+    import json
+
+    path = checkpoint.with_name("fit.json")
+    try:
+        fit = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as e:
+        log.warning("%s unreadable (%s): default mask threshold", path, e)
+        return None
+    calib = (fit.get("heldout") or {}).get("mask_threshold") or {}
+    value = calib.get("synth_threshold")
+    return float(value) if isinstance(value, (int, float)) else None
 
 
 def _in_field_world(renderer, entries, voters):
@@ -159,8 +188,8 @@ def register(subparsers) -> None:
     p.add_argument("--class-source", choices=("labels", "mask"), default="labels",
                    help="boxes' classes: voted by the real labels that see them (default) or the mask head's")
     p.add_argument("--mask-threshold", type=float, default=None,
-                   help="foreground probability of a blob pixel (default 0.6 static, 0.5 dynamic; ~0.8 for a "
-                        "field fitted ~3,000+ steps, whose masks are sharper)")
+                   help="foreground probability of a blob pixel (default: static views the threshold `uavsim fit` "
+                        "calibrated on the held-out frames, else 0.6; dynamic views 0.5)")
     p.set_defaults(func=run_cli)
 
 

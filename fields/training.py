@@ -531,6 +531,24 @@ def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], mi
     return summary
 
 
+def evaluate_heldout(model: StaticModel, data: FlightData, indices: list[int],
+                     out_dir: Path | None = None) -> dict | None:
+    """``evaluate_frames`` on the held-out frames plus the mask threshold calibrated there
+    (``"mask_threshold"``, :func:`fields.mask_calibration.calibrate_threshold`; None without label
+    boxes >= 6 px): what ``uavsim fit`` writes to ``fit.json`` and ``uavsim synth`` reads. None
+    without held-out frames."""
+    from fields.mask_calibration import calibrate_threshold
+
+    if not indices:
+        return None
+    summary = evaluate_frames(model, data, indices, out_dir=out_dir, keep_probs=True)
+    probs = summary.pop("mask_probs")
+    truth = {i: [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]]
+             for i in probs if bool(data.has_mask[i])}
+    summary["mask_threshold"] = calibrate_threshold({i: probs[i] for i in truth}, truth)
+    return summary
+
+
 def write_fit_json(path: Path, result: FitResult, cfg: FitConfig, heldout: dict | None) -> None:
     n = result.model.param_count()
     payload = {"kind": "static", "encoding": cfg.encoding, "sampler": cfg.sampler, "steps": result.step,
