@@ -113,12 +113,13 @@ class DynamicModel(nn.Module):
     def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, times01: torch.Tensor,
                     image_idx: torch.Tensor | None = None, train: bool = False, with_mask: bool = True,
                     dynamic_gate: torch.Tensor | None = None, with_features: bool = False,
-                    generator=None) -> dict:
+                    feature_points: int | None = None, generator=None) -> dict:
         """Render R rays at times ``times01`` (R,): ``rgb`` (R,3), ``acc``, ``depth`` (R,1),
         ``weights`` (R,S), ``t_norm`` (R,S+1), ``mask_probs`` (R,C+1) with ``with_mask``; extended
         models add ``dynamic_prob`` (R,) (weight-composited mask channel, weights detached) and with
-        ``with_features`` the per-sample plane features for ``L_cos``. ``dynamic_gate`` (R,) in
-        [0, 1]: 1 = the ray's pixel lies inside a person box (extended models only)."""
+        ``with_features`` the per-sample plane features for ``L_cos`` (of the first ``feature_points``
+        samples, in ray order; None: all). ``dynamic_gate`` (R,) in [0, 1]: 1 = the ray's pixel lies
+        inside a person box (extended models only)."""
         f = self.field
         edges = self.sampler.edges(origins, dirs, f.lo, f.hi, train=train, generator=generator)
         r, s1 = edges.shape
@@ -129,7 +130,8 @@ class DynamicModel(nn.Module):
         g_rep = None
         if dynamic_gate is not None and self.extended:
             g_rep = dynamic_gate.reshape(-1, 1).float().expand(r, s).reshape(-1)
-        out = f(pts, t_rep, None, i_rep, dynamic_gate=g_rep, with_mask=with_mask)
+        out = f(pts, t_rep, None, i_rep, dynamic_gate=g_rep, with_mask=with_mask,
+                space_points=feature_points if with_features else 0)
         sigma = out["sigma"].view(r, s)
         if self.sampler_config.opaque_floor:
             floor = (origins[:, 2] + edges[:, -1] * dirs[:, 2]) <= f.lo[2] + 1e-3

@@ -261,7 +261,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         mask_w = iw[(cls > 0).long()]  # importance weights of the per-ray losses (all 1 without box rays)
         gate = dyn if (ext and cfg.gate) else None
         res = model.render_rays(o, d, t01[fi], fi, train=True, with_mask=cfg.lambda_mask > 0, dynamic_gate=gate,
-                                with_features=ext and cfg.lambda_cos > 0, generator=gen)
+                                with_features=ext and cfg.lambda_cos > 0, feature_points=cfg.cos_points, generator=gen)
         loss_rgb = torch.mean(((res["rgb"] - target) ** 2).mean(-1) * mask_w)
         loss = loss_rgb + regularisers(model, cfg)
         if model.pose_drift is not None and cfg.lambda_pose > 0:
@@ -277,11 +277,9 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             p = res["dynamic_prob"][m_ok].clamp(1e-5, 1 - 1e-5)
             loss = loss + cfg.lambda_dynamic * F.binary_cross_entropy(p, dyn[m_ok], weight=mask_w[m_ok])
         if ext and cfg.lambda_cos > 0:
-            # the first ``cos_points`` samples = whole rays from the front of a batch of random rays:
-            # a slice is a view (random indexing of the 18 strided feature tensors cost ~5 % of a step)
-            k = cfg.cos_points
-            loss = loss + cfg.lambda_cos * cosine_separation([f[:k] for f in res["static_space"]],
-                                                             [f[:k] for f in res["dynamic_space"]])
+            # the first ``cos_points`` samples = whole rays from the front of a batch of random rays
+            # (random indexing of the 18 strided feature tensors cost ~5 % of a step)
+            loss = loss + cfg.lambda_cos * cosine_separation(res["static_space"], res["dynamic_space"])
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()

@@ -98,3 +98,55 @@ def test_field_outputs_are_finite_and_gradients_survive_100_steps():
         opt.step()
     assert torch.isfinite(out["sigma"]).all() and (out["dynamic_prob"] >= 0).all()
     assert KPlanesFieldConfig.from_json(cfg.to_json()) == cfg
+
+
+@pytest.mark.parametrize("pattern,space_points", [("mixed", 24), ("mixed", None), ("mixed", 0), ("static", 24),
+                                                  ("dynamic", 24), ("mixed", 1000)])
+def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points):
+    """The fast path (planes sampled with autograd only where the gate lets gradients through) gives the
+    values and the gradients of planes and coordinates that gating every sample gives."""
+    torch.manual_seed(3)
+    cfg = KPlanesConfig(base_resolution=(5, 4, 3), multipliers=(1, 2), time_resolution=6, features=3, extended=True)
+    enc = KPlanesEncoding(cfg)
+    with torch.no_grad():
+        for p in enc.dynamic_planes:  # time planes away from their initial 1 / 0, so every gradient is non-trivial
+            p.add_(0.3 * torch.randn_like(p))
+    n = 96
+    x0, t = torch.rand(n, 3), torch.rand(n)
+    gate = {"mixed": (torch.rand(n) < 0.3).float(), "static": torch.zeros(n), "dynamic": torch.ones(n)}[pattern]
+    w_feat, w_mask = torch.randn(n, enc.out_dim), torch.randn(n, 3 * 2)
+
+    def run(split: bool):
+        enc.split_hard_gate = split
+        enc.zero_grad()
+        x = x0.clone().requires_grad_(True)
+        out = enc(x, t, dynamic_gate=gate, space_points=space_points)
+        loss = (out["features"] * w_feat).sum() + (out["mask_values"] * w_mask).sum()
+        if out["static_space"] and out["static_space"][0].shape[0]:
+            loss = loss + cosine_separation(out["static_space"], out["dynamic_space"])
+        loss.backward()
+        grads = [p.grad.clone() if p.grad is not None else torch.zeros_like(p) for p in enc.parameters()]
+        return out, grads, x.grad.clone()
+
+    ref, ref_grads, ref_x = run(False)
+    fast, fast_grads, fast_x = run(True)
+    enc.split_hard_gate = True
+    assert torch.equal(fast["features"], ref["features"]) and torch.equal(fast["mask_values"], ref["mask_values"])
+    for a, b in zip(fast["static_space"] + fast["dynamic_space"], ref["static_space"] + ref["dynamic_space"],
+                    strict=True):
+        assert torch.equal(a, b)
+    for a, b in zip(fast_grads, ref_grads, strict=True):
+        assert torch.allclose(a, b, atol=1e-5, rtol=1e-4)
+    assert torch.allclose(fast_x, ref_x, atol=1e-5, rtol=1e-4)
+    assert any(g.abs().sum() > 0 for g in ref_grads)
+
+
+def test_soft_gates_and_inference_take_the_gated_path():
+    cfg = KPlanesConfig(base_resolution=(4, 4, 2), multipliers=(1,), time_resolution=4, features=3, extended=True)
+    enc = KPlanesEncoding(cfg)
+    x, t = torch.rand(10, 3), torch.rand(10)
+    soft = enc(x, t, dynamic_gate=torch.full((10,), 0.5))
+    with torch.no_grad():
+        inference = enc(x, t, dynamic_gate=torch.ones(10))
+    assert torch.allclose(soft["features"], inference["features"])
+    assert soft["static_space"][0].shape == (10, 3)
