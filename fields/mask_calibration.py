@@ -8,8 +8,8 @@ on the masks rendered there (the ``evaluate_frames`` box IoU: each label box's b
 none) and keeps the best; the novel high-altitude views then take that plus
 :data:`HIGH_ALTITUDE_OFFSET`. The offset is measured, not derived: on four bench fields (975-3,403
 steps) the best cut on tuning views at 35/50 m lay 0.1-0.2 above the held-out 15 m best
-(bench/RESULTS.md, synthesis session 8). At altitude a person is 2-3x fewer pixels across, so the
-soft rim the field leaves around it weighs more in the box and a higher cut pays.
+(bench/RESULTS.md, synthesis session 8). A plausible reason, not tested: at altitude a person is
+2-3x fewer pixels across, so the soft rim the field leaves around it weighs more in the box.
 """
 
 from __future__ import annotations
