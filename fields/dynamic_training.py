@@ -97,7 +97,8 @@ class DynamicFitConfig:
     #: knot per this many seconds of flight (None: take the poses as given). Worth +0.85 / +2.44 dB
     #: held-out to extended K-Planes on the 80 / 300-frame bench flights, +0.18 / +0.05 dB to stock
     #: (bench/RESULTS.md, Table III session 7); 1 s beat 0.5 s (-0.33 dB) and 3 s (-3.05 dB) for
-    #: extended on the 300-frame flight (session 8)
+    #: extended on the 300-frame flight; on SfM-refined poses it cost extended 1.13 dB (session 8):
+    #: use None there
     pose_knot_s: float | None = 1.0
     #: Adam step sizes of the pose knots (decayed with the field's schedule): metres, radians
     pose_lr_m: float = 5e-3
