@@ -261,7 +261,7 @@ def score_masks(saved, rules, min_box_px: float = 6.0) -> dict:
     """Box scores of ``rules`` on kept masks: the ``evaluate_frames`` box IoU (best blob per label box
     >= ``min_box_px`` on its shorter side, any class) and one-to-one recall / precision / mean IoU at
     IoU >= 0.5, same class, people >= ``min_box_px`` tall (the bench/synthesis.py measure)."""
-    from fields.evaluation import MaskBox, match_boxes
+    from fields.evaluation import label_boxes, match_boxes
     from fields.mask_boxes import boxes_from_probabilities
     from fields.synthesis import BoxMatch
     from fields.synthesis import match_boxes as match_one_to_one
@@ -269,8 +269,7 @@ def score_masks(saved, rules, min_box_px: float = 6.0) -> dict:
     ious, total, pred_n = [], BoxMatch(0, 0, 0, []), 0
     for key in sorted(k for k in saved.files if k.startswith("prob_")):
         i = key.split("_", 1)[1]
-        truth = [MaskBox(int(c), float(x0), float(y0), float(x1), float(y1), 0, 1.0)  # label edges (float px)
-                 for c, x0, y0, x1, y1 in saved[f"truth_{i}"]]
+        truth = label_boxes(saved[f"truth_{i}"].tolist())  # label edges (float px)
         pred = boxes_from_probabilities(saved[key].astype(np.float32), rules)
         pred_n += len(pred)
         ious += match_boxes([t for t in truth if min(t.x1 - t.x0, t.y1 - t.y0) >= min_box_px], pred)
@@ -283,13 +282,12 @@ def score_masks(saved, rules, min_box_px: float = 6.0) -> dict:
 
 def calibrate_masks(name: str) -> None:
     """Print :func:`fields.mask_calibration.calibrate_threshold` on the kept held-out masks of ``name``."""
-    from fields.mask_boxes import MaskBox
+    from fields.evaluation import label_boxes
     from fields.mask_calibration import calibrate_threshold
 
     saved = np.load(OUT_DIR / f"fields_masks_{name}.npz")
     probs = {int(k.split("_", 1)[1]): saved[k] for k in saved.files if k.startswith("prob_")}
-    truth = {i: [MaskBox(int(c), float(x0), float(y0), float(x1), float(y1), 0, 1.0)
-                 for c, x0, y0, x1, y1 in saved[f"truth_{i}"]] for i in probs}
+    truth = {i: label_boxes(saved[f"truth_{i}"].tolist()) for i in probs}
     print(json.dumps({"config": name, **(calibrate_threshold(probs, truth) or {})}), flush=True)
 
 

@@ -191,8 +191,9 @@ def rescore(rule_texts: list[str], min_height_px: float, probs_path: Path, fligh
     the flight's training labels when the run saved depths, else the mask's own."""
     from bench.fields_ab import parse_variant
     from fields.data import load_flight
+    from fields.evaluation import label_boxes
     from fields.label_transfer import LabelledFrames
-    from fields.mask_boxes import BoxRules, MaskBox, boxes_from_probabilities
+    from fields.mask_boxes import BoxRules, boxes_from_probabilities
     from fields.synthesis import BoxMatch, match_boxes
 
     saved = np.load(probs_path)
@@ -206,7 +207,7 @@ def rescore(rule_texts: list[str], min_height_px: float, probs_path: Path, fligh
         rules = BoxRules(**over)
         per_alt: dict[float, BoxMatch] = {}
         for k in range(n):
-            truth = [MaskBox(int(c), x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in saved[f"truth_{k}"]]
+            truth = label_boxes(saved[f"truth_{k}"].tolist())
             prob = saved[f"prob_{k}"].astype(np.float32)
             pred = boxes_from_probabilities(prob, rules)
             if voters is not None:

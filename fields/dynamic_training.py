@@ -32,7 +32,7 @@ import torch.nn.functional as F
 
 from fields.dynamic_data import DynamicFlightData
 from fields.dynamic_model import DynamicModel, make_field_config, plane_sizing
-from fields.evaluation import MaskBox, match_boxes, psnr, ssim
+from fields.evaluation import label_boxes, match_boxes, psnr, ssim
 from fields.kplanes import cosine_separation
 from fields.mask_boxes import boxes_from_probabilities
 from fields.model import SamplerConfig
@@ -343,7 +343,7 @@ def evaluate_dynamic(model: DynamicModel, dd: DynamicFlightData, indices: list[i
             bg_err.append(float(sq[~inside].mean()))
         row["box_fraction"] = float(inside.mean())
         if bool(data.has_mask[i]):
-            every_truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]]
+            every_truth = label_boxes(data.boxes[i])
             truth = [t for t in every_truth if min(t.x1 - t.x0, t.y1 - t.y0) >= min_box_px]
             predicted = boxes_from_probabilities(r["mask_probs"])  # the synthesis rules
             ious += match_boxes(truth, predicted)

@@ -10,7 +10,7 @@ import numpy as np
 
 from fields.mask_boxes import MaskBox, box_iou, boxes_from_class_map
 
-__all__ = ["psnr", "ssim", "boxes_from_mask", "box_iou", "match_boxes", "MaskBox"]
+__all__ = ["psnr", "ssim", "boxes_from_mask", "box_iou", "match_boxes", "label_boxes", "MaskBox"]
 
 
 def _float(img) -> np.ndarray:
@@ -50,6 +50,11 @@ def ssim(a, b) -> float:
 def boxes_from_mask(mask: np.ndarray, min_area_px: int = 4) -> list[MaskBox]:
     """One box per 8-connected blob of each class of a class-id mask (0 background, k+1 class k)."""
     return boxes_from_class_map(mask, min_area_px)
+
+
+def label_boxes(rows) -> list[MaskBox]:
+    """Label boxes as :class:`MaskBox`: ``rows`` of (class, x0, y0, x1, y1) in pixel edges (float or int)."""
+    return [MaskBox(int(c), x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in rows]
 
 
 def match_boxes(truth: list, predicted: list) -> list[float]:

@@ -18,6 +18,7 @@ import dataclasses
 
 import numpy as np
 
+from fields.evaluation import match_boxes
 from fields.mask_boxes import BoxRules, MaskBox, boxes_from_probabilities
 
 #: thresholds tried on the held-out masks
@@ -39,10 +40,8 @@ def calibrate_threshold(probs: dict[int, np.ndarray], truth: dict[int, list[Mask
     ``{"heldout_best", "synth_threshold", "box_iou": {threshold: mean IoU}, "frames", "boxes"}``.
     Ties go to the lower threshold.
     """
-    from fields.evaluation import match_boxes
-
     rules = rules or BoxRules()
-    scored = {i: [b for b in truth.get(i, []) if min(b.x1 - b.x0, b.y1 - b.y0) >= min_box_px] for i in probs}
+    scored = {i: [b for b in truth.get(i, []) if min(b.width, b.height) >= min_box_px] for i in probs}
     n_boxes = sum(len(v) for v in scored.values())
     if n_boxes == 0:
         return None

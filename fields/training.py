@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from fields.data import FlightData, RayBank
-from fields.evaluation import MaskBox, match_boxes, psnr, ssim
+from fields.evaluation import label_boxes, match_boxes, psnr, ssim
 from fields.field import FieldConfig
 from fields.mask_boxes import BoxRules, boxes_from_probabilities
 from fields.model import SamplerConfig, StaticModel
@@ -510,8 +510,7 @@ def evaluate_frames(model: StaticModel, data: FlightData, indices: list[int], mi
         if keep_probs and "mask_probs" in r:
             probs[i] = np.asarray(r["mask_probs"], dtype=np.float16)
         if bool(data.has_mask[i]):
-            truth = [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]
-                     if min(x1 - x0, y1 - y0) >= min_box_px]
+            truth = [b for b in label_boxes(data.boxes[i]) if min(b.width, b.height) >= min_box_px]
             found = match_boxes(truth, boxes_from_probabilities(r["mask_probs"], rules))
             ious += found
             row["box_iou"] = float(np.mean(found)) if found else None
@@ -543,8 +542,7 @@ def evaluate_heldout(model: StaticModel, data: FlightData, indices: list[int],
         return None
     summary = evaluate_frames(model, data, indices, out_dir=out_dir, keep_probs=True)
     probs = summary.pop("mask_probs")
-    truth = {i: [MaskBox(c, x0, y0, x1, y1, 0, 1.0) for c, x0, y0, x1, y1 in data.boxes[i]]
-             for i in probs if bool(data.has_mask[i])}
+    truth = {i: label_boxes(data.boxes[i]) for i in probs if bool(data.has_mask[i])}
     summary["mask_threshold"] = calibrate_threshold({i: probs[i] for i in truth}, truth)
     return summary
 
