@@ -9,8 +9,9 @@ jitter, see fields.dynamic_simscene.PoseNoise). Both kinds use the same DynamicF
 ``kind`` and stop at the same training budget (evaluation time not counted). Reports the mean
 held-out PSNR / SSIM over all validation frames, PSNR inside person boxes, steps, parameters, MB,
 and the pose errors against the simulator's true poses (as given, and as rendered after the learned
-pose-drift correction, ``DynamicFitConfig.pose_knot_s``: on by default since session 7; off with
-``--set pose_knot_s=null``). ``--sfm``: first refine the noisy telemetry poses with SfM (pycolmap,
+pose-drift correction, ``DynamicFitConfig.pose_knot_s``: on by default since session 7 for telemetry
+poses, off for SfM-refined ones since session 9; off with ``--set pose_knot_s=null``, forced on SfM poses
+with ``--set pose_drift_on_sfm=true``). ``--sfm``: first refine the noisy telemetry poses with SfM (pycolmap,
 telemetry priors, every frame, as ``uavsim poses`` does on a recorded flight; cached as a copy of the
 flight folder with suffix ``_sfm``): the paper's set-up, whose poses came from COLMAP.
 

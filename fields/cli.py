@@ -37,7 +37,8 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
     p.add_argument("--pose-knot-s", type=float, default=None,
                    help="dynamic fits: learn a time-smooth pose-drift correction with one knot per this many "
-                        "seconds of flight (default 1; 0: take the poses as given)")
+                        "seconds of flight (default: 1 on telemetry poses, none when every pose is SfM-refined; "
+                        "0: take the poses as given; a value given here holds on SfM poses too)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from derived/fields/static.pt")
     p.add_argument("--out", type=Path, default=None, help="output folder (default FLIGHT/derived/fields)")

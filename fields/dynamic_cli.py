@@ -71,7 +71,8 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
                        pose_knot_s: float | None = None) -> dict:
     """Fit a ``kplanes`` or ``kplanes-ext`` field → ``out/dynamic.pt`` + ``fit.json`` (+ held-out previews).
 
-    ``pose_knot_s``: spacing of the learned pose-drift knots, s (None: the config default; 0: none).
+    ``pose_knot_s``: spacing of the learned pose-drift knots, s (None: the config default, 1 s on
+    telemetry poses and none on SfM-refined ones; 0: none; > 0: that spacing, on SfM poses too).
 
     Returns a summary: steps, train_s, params, mb, held-out psnr / ssim / box IoU (None without
     held-out frames). ``dd``: the loaded timed flight (loaded here when None).
@@ -82,8 +83,9 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
     dd = dd if dd is not None else load_dynamic_flight(flight)
     cfg = DynamicFitConfig(kind=kind, budget_s=budget_s or None, holdout_every=holdout_every, threads=threads,
                            seed=seed)
-    if pose_knot_s is not None:  # 0: take the poses as given
+    if pose_knot_s is not None:  # 0: take the poses as given; an explicit spacing holds on SfM poses too
         cfg.pose_knot_s = pose_knot_s or None
+        cfg.pose_drift_on_sfm = bool(pose_knot_s)
     if iters is not None:
         cfg.iters = iters
     if samples is not None:

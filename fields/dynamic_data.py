@@ -30,6 +30,13 @@ class DynamicFlightData:
     data: FlightData
     #: (N,) int64 capture times, unix µs
     times_us: np.ndarray
+    #: per frame where its pose came from (the poses file's ``source``: "telemetry", "sfm", "novel")
+    pose_sources: tuple[str, ...] = ()
+
+    @property
+    def all_poses_sfm(self) -> bool:
+        """Every frame's pose was refined by SfM (``source`` "sfm")."""
+        return bool(self.pose_sources) and all(s == "sfm" for s in self.pose_sources)
 
     @property
     def n(self) -> int:
@@ -93,7 +100,7 @@ def load_dynamic_flight(flight: str | Path, poses_path: str | Path | None = None
     data = load_flight(flight, poses_path)
     poses = PosesFile.load(poses_path or flight / "derived" / "poses.json")
     csv_times = None
-    times = []
+    times, sources = [], []
     for e in poses.frames:
         if e.cam_from_world is None or e.frame is None:
             continue
@@ -105,6 +112,7 @@ def load_dynamic_flight(flight: str | Path, poses_path: str | Path | None = None
             raise FlightDataError(f"{flight}: frame {e.frame} has no capture time (t_unix_us null in the poses "
                                   "file and not in frames.csv); a dynamic field needs one per frame")
         times.append(int(t))
+        sources.append(e.source)
     if len(times) != data.n:
         raise FlightDataError(f"{flight}: {len(times)} timed frames but {data.n} loaded frames")
-    return DynamicFlightData(data, np.asarray(times, dtype=np.int64))
+    return DynamicFlightData(data, np.asarray(times, dtype=np.int64), tuple(sources))

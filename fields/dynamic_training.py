@@ -97,9 +97,13 @@ class DynamicFitConfig:
     #: knot per this many seconds of flight (None: take the poses as given). Worth +0.85 / +2.44 dB
     #: held-out to extended K-Planes on the 80 / 300-frame bench flights, +0.18 / +0.05 dB to stock
     #: (bench/RESULTS.md, Table III session 7); 1 s beat 0.5 s (-0.33 dB) and 3 s (-3.05 dB) for
-    #: extended on the 300-frame flight; on SfM-refined poses it cost extended 1.13 dB (session 8):
-    #: use None there
+    #: extended on the 300-frame flight. Not learned on SfM-refined poses (``pose_drift_on_sfm``)
     pose_knot_s: float | None = 1.0
+    #: learn the correction even when every frame's pose was refined by SfM (``poses.json`` source
+    #: "sfm"); off: such poses are taken as given. On SfM poses the knots cost held-out PSNR on both
+    #: bench flights, both kinds: 80 frames stock 0.05 / extended 1.13 dB, 300 frames 0.84 / 0.70 dB
+    #: (bench/RESULTS.md, Table III sessions 8 and 9)
+    pose_drift_on_sfm: bool = False
     #: Adam step sizes of the pose knots (decayed with the field's schedule): metres, radians
     pose_lr_m: float = 5e-3
     pose_lr_rad: float = 5e-5
@@ -138,10 +142,21 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
                            cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
-    knots = knot_count(dd.span_us / 1e6, cfg.pose_knot_s) if cfg.pose_knot_s else 0
+    knots, why = pose_knots(dd, cfg)
+    sizing.reasoning.append(why)
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
                          dd.t0_us, dd.span_us, pose_knots=knots)
     return model, bounds, asdict(sizing)
+
+
+def pose_knots(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[int, str]:
+    """Knots of the learned pose-drift correction for this flight, and why (a line for fit.json)."""
+    if not cfg.pose_knot_s:
+        return 0, "pose drift: not learned (pose_knot_s off)"
+    if dd.all_poses_sfm and not cfg.pose_drift_on_sfm:
+        return 0, f"pose drift: not learned, all {dd.n} poses are SfM-refined (pose_drift_on_sfm to force)"
+    knots = knot_count(dd.span_us / 1e6, cfg.pose_knot_s)
+    return knots, f"pose drift: {knots} knots, one per {cfg.pose_knot_s:g} s of flight"
 
 
 def _optimizer(model: DynamicModel, cfg: DynamicFitConfig):

@@ -460,3 +460,30 @@ def test_cli_fit_with_pose_knots_and_render_recorded_poses_at_the_corrected_pose
     want, _ = renderer.render_view(pf.camera, m.field_pose(e.cam_from_world, m.time01(e.t_unix_us)), e.t_unix_us,
                                    with_mask=False)
     np.testing.assert_array_equal(got, want)
+
+
+def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dynamic_flight, tmp_path):
+    from fields.dynamic_training import pose_knots
+
+    dd = load_dynamic_flight(dynamic_flight)
+    assert set(dd.pose_sources) == {"telemetry"} and not dd.all_poses_sfm
+    knots, why = pose_knots(dd, DynamicFitConfig(kind="kplanes"))
+    assert knots == 7 and "one per 1 s" in why  # 5.5 s of flight
+    flight = tmp_path / "f"
+    shutil.copytree(dynamic_flight, flight)
+    pf = PosesFile.load(flight / "derived" / "poses.json")
+    for e in pf.frames:
+        e.source = "sfm"
+    pf.save(flight / "derived" / "poses.json")
+    sfm = load_dynamic_flight(flight)
+    assert sfm.all_poses_sfm
+    assert pose_knots(sfm, DynamicFitConfig(kind="kplanes")) == (0, pose_knots(sfm, DynamicFitConfig())[1])
+    assert "SfM-refined" in pose_knots(sfm, DynamicFitConfig())[1]
+    assert pose_knots(sfm, DynamicFitConfig(pose_drift_on_sfm=True))[0] == 7
+    assert pose_knots(dd, DynamicFitConfig(pose_knot_s=None))[0] == 0
+    r = fit_dynamic(sfm, DynamicFitConfig(kind="kplanes-ext", **TINY))
+    assert r.model.pose_drift is None and any("SfM-refined" in line for line in r.sizing["reasoning"])
+    # one frame left to telemetry (SfM could not register it): its pose may drift, so learn the correction
+    pf.frames[3].source = "telemetry"
+    pf.save(flight / "derived" / "poses.json")
+    assert pose_knots(load_dynamic_flight(flight), DynamicFitConfig())[0] == 7
