@@ -154,7 +154,8 @@ def pose_knots(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[int, str]:
     if not cfg.pose_knot_s:
         return 0, "pose drift: not learned (pose_knot_s off)"
     if dd.all_poses_sfm and not cfg.pose_drift_on_sfm:
-        return 0, f"pose drift: not learned, all {dd.n} poses are SfM-refined (pose_drift_on_sfm to force)"
+        return 0, (f"pose drift: not learned, all {dd.n} poses are SfM-refined (an explicit --pose-knot-s or "
+                   "pose_drift_on_sfm learns it)")
     knots = knot_count(dd.span_us / 1e6, cfg.pose_knot_s)
     return knots, f"pose drift: {knots} knots, one per {cfg.pose_knot_s:g} s of flight"
 

@@ -477,8 +477,8 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     pf.save(flight / "derived" / "poses.json")
     sfm = load_dynamic_flight(flight)
     assert sfm.all_poses_sfm
-    assert pose_knots(sfm, DynamicFitConfig(kind="kplanes")) == (0, pose_knots(sfm, DynamicFitConfig())[1])
-    assert "SfM-refined" in pose_knots(sfm, DynamicFitConfig())[1]
+    knots, why = pose_knots(sfm, DynamicFitConfig(kind="kplanes"))
+    assert knots == 0 and "SfM-refined" in why
     assert pose_knots(sfm, DynamicFitConfig(pose_drift_on_sfm=True))[0] == 7
     assert pose_knots(dd, DynamicFitConfig(pose_knot_s=None))[0] == 0
     r = fit_dynamic(sfm, DynamicFitConfig(kind="kplanes-ext", **TINY))
@@ -487,3 +487,11 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     pf.frames[3].source = "telemetry"
     pf.save(flight / "derived" / "poses.json")
     assert pose_knots(load_dynamic_flight(flight), DynamicFitConfig())[0] == 7
+    for f in pf.frames:
+        f.source = "sfm"
+    pf.save(flight / "derived" / "poses.json")
+    from fields.dynamic_cli import fit_dynamic_flight
+
+    fit_dynamic_flight(flight, tmp_path / "out", "kplanes", budget_s=None, iters=2, samples=8, batch_rays=128,
+                       pose_knot_s=2.0)  # an explicit spacing (uavsim fit --pose-knot-s 2) holds on SfM poses
+    assert json.loads((tmp_path / "out" / "fit.json").read_text())["pose_drift"]["knots"] == 4
