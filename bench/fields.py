@@ -259,20 +259,30 @@ def save_masks(name: str, probs: dict, data) -> Path:
     return path
 
 
+def kept_masks(saved) -> tuple[dict, dict]:
+    """The masks ``save_masks`` kept: frame index -> (H, W, K) float32 probabilities, and frame index ->
+    label boxes (:class:`fields.mask_boxes.MaskBox`, float pixel edges), in frame order."""
+    from fields.evaluation import label_boxes
+
+    ids = sorted(int(k.split("_", 1)[1]) for k in saved.files if k.startswith("prob_"))
+    return ({i: saved[f"prob_{i}"].astype(np.float32) for i in ids},
+            {i: label_boxes(saved[f"truth_{i}"].tolist()) for i in ids})
+
+
 def score_masks(saved, rules, min_box_px: float = 6.0) -> dict:
     """Box scores of ``rules`` on kept masks: the ``evaluate_frames`` box IoU (best blob per label box
     >= ``min_box_px`` on its shorter side, any class) and one-to-one recall / precision / mean IoU at
     IoU >= 0.5, same class, people >= ``min_box_px`` tall (the bench/synthesis.py measure)."""
-    from fields.evaluation import label_boxes, match_boxes
+    from fields.evaluation import match_boxes
     from fields.mask_boxes import boxes_from_probabilities
     from fields.synthesis import BoxMatch
     from fields.synthesis import match_boxes as match_one_to_one
 
     ious, total, pred_n = [], BoxMatch(0, 0, 0, []), 0
-    for key in sorted(k for k in saved.files if k.startswith("prob_")):
-        i = key.split("_", 1)[1]
-        truth = label_boxes(saved[f"truth_{i}"].tolist())  # label edges (float px)
-        pred = boxes_from_probabilities(saved[key].astype(np.float32), rules)
+    probs, truths = kept_masks(saved)
+    for i, prob in probs.items():
+        truth = truths[i]
+        pred = boxes_from_probabilities(prob, rules)
         pred_n += len(pred)
         ious += match_boxes([t for t in truth if min(t.x1 - t.x0, t.y1 - t.y0) >= min_box_px], pred)
         total = total + match_one_to_one(pred, truth, 0.5, min_box_px)
@@ -284,12 +294,9 @@ def score_masks(saved, rules, min_box_px: float = 6.0) -> dict:
 
 def calibrate_masks(name: str) -> None:
     """Print :func:`fields.mask_calibration.calibrate_threshold` on the kept held-out masks of ``name``."""
-    from fields.evaluation import label_boxes
     from fields.mask_calibration import calibrate_threshold
 
-    saved = np.load(OUT_DIR / f"fields_masks_{name}.npz")
-    probs = {int(k.split("_", 1)[1]): saved[k] for k in saved.files if k.startswith("prob_")}
-    truth = {i: label_boxes(saved[f"truth_{i}"].tolist()) for i in probs}
+    probs, truth = kept_masks(np.load(OUT_DIR / f"fields_masks_{name}.npz"))
     print(json.dumps({"config": name, **(calibrate_threshold(probs, truth) or {})}), flush=True)
 
 

@@ -45,13 +45,13 @@ def calibrate_threshold(probs: dict[int, np.ndarray], truth: dict[int, list[Mask
     n_boxes = sum(len(v) for v in scored.values())
     if n_boxes == 0:
         return None
+    masks = {i: np.asarray(prob, np.float32) for i, prob in probs.items() if scored[i]}  # once, not per cut
     table = {}
     for t in THRESHOLDS:
         r = dataclasses.replace(rules, threshold=t)
         ious = []
-        for i, prob in probs.items():
-            if scored[i]:
-                ious += match_boxes(scored[i], boxes_from_probabilities(np.asarray(prob, np.float32), r))
+        for i, prob in masks.items():
+            ious += match_boxes(scored[i], boxes_from_probabilities(prob, r))
         table[t] = float(np.mean(ious))
     best = max(THRESHOLDS, key=lambda t: (round(table[t], 6), -t))
     return {"heldout_best": best, "synth_threshold": round(min(best + HIGH_ALTITUDE_OFFSET, MAX_THRESHOLD), 2),
