@@ -59,6 +59,8 @@ CONFIGS = {
     "hash-strat-s64": {"encoding": "hash", "sampler": "stratified", "n_samples": 64, "mask_pos_fraction": 0.0},
     "hash-strat-bg384": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "background_resolution": 384},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
+    # occupancy-guided samples at the default's count: where the density is, not evenly through the slab
+    "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
     "planes-occ": {"encoding": "planes", "sampler": "occupancy", "n_samples": 24},
 }

@@ -3,10 +3,13 @@
 - :class:`StratifiedSampler`: ``n`` intervals spread evenly between the ray's entry and exit of
   the scene box (the ground slab), jittered while training.
 - :class:`OccupancySampler`: a coarse 3D grid of density over the box (an exponential moving
-  maximum of the field's density, refreshed a fraction of the cells at a time while training)
-  acts as the proposal: its transmittance-weighted distribution along each ray is inverted to
-  place the ``n`` intervals near the first surface (Nerfacto's proposal idea with a grid instead
-  of a network; no extra network to train).
+  maximum of the field's density, refreshed a fraction of the cells at a time while training;
+  Instant-NGP's occupancy grid) marks cells as occupied (optical depth across a cell >= 1 %,
+  dilated by one cell). Along each ray the ``n`` intervals are spread evenly over the occupied
+  stretches, with a small share (``empty_share`` of the weight per metre) left in empty cells so a
+  cell the grid wrongly empties can still be learned back. A fresh grid is all occupied, i.e.
+  stratified. Evenly over *all* occupied stretches, not transmittance-weighted: a
+  semi-transparent person and the ground behind it both keep samples.
 
 Both return interval edges ``t_edges`` (R, n+1) in metres along unit directions; rays that miss
 the box get zero-length intervals (weight 0 everywhere, i.e. pure background).
@@ -16,8 +19,6 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-
-from fields.rendering import weights_from_density
 
 
 def ray_box(origins: torch.Tensor, dirs: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor):
@@ -66,11 +67,12 @@ def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n_edges: int, train: 
     pdf = w / w.sum(-1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, -1)], -1).clamp(max=1.0)
     r = edges.shape[0]
-    if train:
-        u = (torch.arange(n_edges, device=edges.device) + torch.rand(r, n_edges, device=edges.device,
-                                                                   generator=generator)) / n_edges
-    else:
-        u = (torch.arange(n_edges, device=edges.device) + 0.5).expand(r, n_edges) / n_edges
+    # evenly spaced quantiles from 0 to 1 (jittered inside while training, as the stratified sampler
+    # does): a uniform ``weights`` gives exactly the stratified edges
+    u = torch.linspace(0.0, 1.0, n_edges, device=edges.device).expand(r, n_edges)
+    if train and n_edges > 2:
+        jitter = (torch.rand(r, n_edges - 2, device=edges.device, generator=generator) - 0.5) / (n_edges - 1)
+        u = torch.cat([u[:, :1], u[:, 1:-1] + jitter, u[:, -1:]], dim=-1)
     u = u.contiguous().clamp(0.0, 1.0)
     idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[-1] - 1)
     c0, c1 = cdf.gather(-1, idx - 1), cdf.gather(-1, idx)
@@ -83,16 +85,23 @@ def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n_edges: int, train: 
 
 
 class OccupancySampler:
-    """Occupancy-grid-guided importance sampling; see the module docstring."""
+    """Occupancy-grid-guided sampling; see the module docstring.
+
+    ``grid_shape`` (x, y, z cells over the box); ``n_coarse``: evenly spaced probes per ray at which
+    the grid is read; ``decay``: factor on a cell's value each time it is refreshed (moving
+    maximum); ``update_fraction``: share of the cells refreshed per :meth:`update`;
+    ``empty_share``: sampling weight per metre of an empty stretch relative to an occupied one.
+    """
 
     def __init__(self, grid_shape: tuple[int, int, int], n_samples: int = 32, n_coarse: int = 96,
-                 decay: float = 0.9, update_fraction: float = 1 / 8):
+                 decay: float = 0.9, update_fraction: float = 1 / 8, empty_share: float = 0.05):
         self.grid_shape = tuple(int(g) for g in grid_shape)
         self.n_samples, self.n_coarse = int(n_samples), int(n_coarse)
-        self.decay, self.update_fraction = decay, update_fraction
+        self.decay, self.update_fraction, self.empty_share = decay, update_fraction, float(empty_share)
         # start "everything may be occupied": the sampler is stratified until the grid learns
-        self.grid = torch.full(self.grid_shape, 1.0)
+        self.grid = torch.full(self.grid_shape, torch.finfo(torch.float32).max)
         self._cursor = 0
+        self._occ = None  # occupied(), cached until the grid changes
 
     def state_dict(self) -> dict:
         return {"grid": self.grid.clone(), "cursor": self._cursor}
@@ -100,17 +109,20 @@ class OccupancySampler:
     def load_state_dict(self, state: dict) -> None:
         self.grid = state["grid"].clone()
         self._cursor = int(state["cursor"])
+        self._occ = None
 
     def to(self, device) -> OccupancySampler:
         self.grid = self.grid.to(device)
+        self._occ = None
         return self
 
     @torch.no_grad()
-    def update(self, density_fn, lo: torch.Tensor, hi: torch.Tensor, generator=None) -> None:
-        """Refresh a slice of the cells: density at a random point per cell, moving maximum."""
+    def update(self, density_fn, lo: torch.Tensor, hi: torch.Tensor, generator=None, full: bool = False) -> None:
+        """Refresh a slice of the cells (every cell with ``full``, replacing the old values): density
+        (1/m) at a random point per cell, kept as a moving maximum."""
         gx, gy, gz = self.grid_shape
         n_cells = gx * gy * gz
-        k = max(1, int(n_cells * self.update_fraction))
+        k = n_cells if full else max(1, int(n_cells * self.update_fraction))
         idx = (torch.arange(k, device=self.grid.device) + self._cursor) % n_cells
         self._cursor = int((self._cursor + k) % n_cells)
         iz = idx % gz
@@ -120,27 +132,28 @@ class OccupancySampler:
         jitter = torch.rand(k, 3, device=self.grid.device, generator=generator)
         size = torch.tensor(self.grid_shape, device=self.grid.device, dtype=torch.float32)
         pts = lo + (cell + jitter) / size * (hi - lo)
-        sig = torch.cat([density_fn(p) for p in pts.split(65536)])
+        sig = torch.cat([density_fn(p) for p in pts.split(65536)]).float()
         flat = self.grid.view(-1)
-        flat[idx] = torch.maximum(flat[idx] * self.decay, sig.float())
+        flat[idx] = sig if full else torch.maximum(flat[idx] * self.decay, sig)
+        self._occ = None
 
-    def _lookup(self, pts: torch.Tensor, lo, hi) -> torch.Tensor:
-        """Grid density at points (R, S, 3), trilinear between cell centres."""
-        g = self.grid[None, None]  # (1, 1, gx, gy, gz)
-        x = (pts - lo) / (hi - lo) * 2 - 1  # grid_sample wants (z-, y-, x-) order of the last dims
-        grid = torch.stack([x[..., 2], x[..., 1], x[..., 0]], -1).view(1, -1, 1, 1, 3)
-        v = F.grid_sample(g, grid, mode="bilinear", align_corners=False, padding_mode="border")
-        return v.view(pts.shape[:-1])
+    def occupied(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+        """(gx, gy, gz) bool: optical depth across a cell >= 0.01 at the grid's density, dilated by one cell."""
+        if self._occ is None:
+            cell = float(((hi - lo) / torch.tensor(self.grid_shape, device=lo.device, dtype=lo.dtype)).min())
+            occ = (self.grid >= 0.01 / cell).float()[None, None]
+            self._occ = F.max_pool3d(occ, 3, stride=1, padding=1)[0, 0] > 0
+        return self._occ
 
     def edges(self, origins, dirs, lo, hi, train: bool, generator=None) -> torch.Tensor:
         coarse = StratifiedSampler(self.n_coarse).edges(origins, dirs, lo, hi, train=False)
         mid = 0.5 * (coarse[:, 1:] + coarse[:, :-1])
-        sig = self._lookup(origins[:, None] + mid[..., None] * dirs[:, None], lo, hi)
-        # cap the proposal density at ~1 optical depth per cell so the samples spread over the
-        # cell where the surface starts and the next one, not only its upper edge
-        cell = float(((hi - lo) / torch.tensor(self.grid_shape, device=lo.device, dtype=lo.dtype)).min())
-        w = weights_from_density(sig.clamp_max(1.0 / cell), coarse[:, 1:] - coarse[:, :-1])
-        return sample_pdf(coarse, w, self.n_samples + 1, train, generator)
+        pts = origins[:, None] + mid[..., None] * dirs[:, None]
+        shape = torch.tensor(self.grid_shape, device=pts.device)
+        ijk = torch.minimum(((pts - lo) / (hi - lo)).clamp(0, 1).mul(shape).long(), shape - 1)
+        occ = self.occupied(lo, hi)[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
+        share = torch.where(occ, 1.0, self.empty_share)
+        return sample_pdf(coarse, share * (coarse[:, 1:] - coarse[:, :-1]), self.n_samples + 1, train, generator)
 
 
 def sample_points(origins, dirs, edges):

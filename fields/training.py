@@ -377,7 +377,9 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
             loss.backward()
             optim.step()
         if cfg.sampler == "occupancy" and step + 1 >= cfg.occupancy_warmup and (step + 1) % cfg.occupancy_every == 0:
-            model.sampler.update(model.field.density, model.field.lo, model.field.hi, generator=gen)
+            # the first refresh reads every cell: the fresh grid's "all occupied" must not linger
+            model.sampler.update(model.field.density, model.field.lo, model.field.hi, generator=gen,
+                                 full=step + 1 < cfg.occupancy_warmup + cfg.occupancy_every)
         after_step(float(loss_rgb.detach()), lr, "rgb")
 
     mask_steps = 0

@@ -495,3 +495,40 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     fit_dynamic_flight(flight, tmp_path / "out", "kplanes", budget_s=None, iters=2, samples=8, batch_rays=128,
                        pose_knot_s=2.0)  # an explicit spacing (uavsim fit --pose-knot-s 2) holds on SfM poses
     assert json.loads((tmp_path / "out" / "fit.json").read_text())["pose_drift"]["knots"] == 4
+
+
+@pytest.mark.parametrize("jitter", [0.0, 0.5])
+def test_time_jitter_spreads_ray_times_between_training_frames(dynamic_flight, monkeypatch, jitter):
+    """Each training ray's time lies within +- jitter x the training frames' spacing of its frame's time."""
+    from fields.dynamic_training import training_spacing01
+
+    dd = load_dynamic_flight(dynamic_flight)
+    seen = []
+    original = DynamicModel.render_rays
+
+    def recording(self, o, d, t01, *args, **kwargs):
+        seen.append(t01.detach().clone())
+        return original(self, o, d, t01, *args, **kwargs)
+
+    monkeypatch.setattr(DynamicModel, "render_rays", recording)
+    fit_dynamic(dd, DynamicFitConfig(kind="kplanes", time_jitter=jitter, **TINY))
+    train_idx, _ = split(dd, 2)
+    frame_t = torch.from_numpy(dd.t01()[train_idx])
+    spacing = training_spacing01(frame_t)
+    assert spacing == pytest.approx(float(np.median(np.diff(np.sort(dd.t01()[train_idx])))))
+    t = torch.cat(seen)
+    nearest = (t[:, None] - frame_t[None, :]).abs().min(dim=1).values
+    assert ((t >= 0) & (t <= 1)).all()
+    if jitter == 0:
+        assert nearest.max() == 0
+    else:
+        assert nearest.max() <= jitter * spacing + 1e-9
+        assert nearest.max() > 0.25 * jitter * spacing  # 3 x 128 rays: some land well away from their frame
+
+
+def test_training_spacing_of_irregular_and_degenerate_times():
+    from fields.dynamic_training import training_spacing01
+
+    assert training_spacing01(torch.tensor([0.0, 0.1, 0.2, 0.5])) == pytest.approx(0.1)
+    assert training_spacing01(torch.tensor([0.7, 0.1, 0.3])) == pytest.approx(0.3)  # unsorted: 0.2 and 0.4
+    assert training_spacing01(torch.tensor([0.5])) == 0.0

@@ -78,6 +78,47 @@ def test_occupancy_sampler_learns_the_ground():
     assert torch.equal(s2.edges(o, d, LO, HI, train=False), e)
 
 
+def test_a_fresh_occupancy_grid_samples_like_the_stratified_sampler():
+    o = torch.tensor([[0.0, 0.0, 15.0], [3.0, -2.0, 12.0]])
+    d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, -1.0], [0.3, 0.2, -0.9]]), dim=-1)
+    occ = OccupancySampler((8, 8, 11), n_samples=8, n_coarse=64).edges(o, d, LO, HI, train=False)
+    strat = StratifiedSampler(8).edges(o, d, LO, HI, train=False)
+    assert torch.allclose(occ, strat, atol=1e-3)
+
+
+def test_occupancy_samples_a_faint_person_and_the_ground_behind_it():
+    """Evenly over every occupied stretch, not only the first surface: a person of density 0.5/m
+    (40 % opaque over its 1 m) above opaque ground keeps samples in both."""
+    def density(p):
+        ground = (p[:, 2] < 0.0).float() * 1e3
+        person = ((p[:, 2] > 1.0) & (p[:, 2] < 2.0)).float() * 0.5
+        return ground + person
+
+    s = OccupancySampler((4, 4, 22), n_samples=32, n_coarse=220, update_fraction=1.0)
+    s.update(density, LO, HI, full=True)
+    o, d = torch.tensor([[0.0, 0.0, 15.0]]), torch.tensor([[0.0, 0.0, -1.0]])
+    e = s.edges(o, d, LO, HI, train=True, generator=torch.Generator().manual_seed(0))
+    z = o[0, 2] - 0.5 * (e[0, 1:] + e[0, :-1])
+    in_person, in_ground = ((z > 0.75) & (z < 2.25)).sum(), (z < 0.25).sum()
+    assert in_person >= 8 and in_ground >= 4, z
+    assert ((z > 2.5) & (z < 4.5)).sum() <= 3  # the empty air above gets the small empty share only
+    assert (e[0, 1:] >= e[0, :-1]).all() and torch.isfinite(e).all()
+
+
+def test_occupancy_full_refresh_replaces_and_partial_refresh_keeps_the_maximum():
+    s = OccupancySampler((4, 4, 4), update_fraction=0.25, decay=0.5)
+    s.update(lambda p: torch.full((p.shape[0],), 8.0), LO, HI, full=True)
+    assert torch.equal(s.grid, torch.full((4, 4, 4), 8.0))  # the fresh grid's 'all occupied' is gone
+    s.update(lambda p: torch.zeros(p.shape[0]), LO, HI)
+    assert (s.grid == 4.0).sum() == 16 and (s.grid == 8.0).sum() == 48  # a quarter decayed once
+    assert s.occupied(LO, HI).all()
+    s.update(lambda p: torch.zeros(p.shape[0]), LO, HI, full=True)
+    assert not s.occupied(LO, HI).any()
+    o, d = torch.tensor([[0.0, 0.0, 15.0]]), torch.tensor([[0.0, 0.0, -1.0]])
+    e = s.edges(o, d, LO, HI, train=False)  # nothing occupied: the empty share alone, i.e. stratified
+    assert torch.allclose(e, StratifiedSampler(32).edges(o, d, LO, HI, train=False), atol=1e-3)
+
+
 def test_background_below_and_above_horizon():
     bg = Background(0.0, 30.0, resolution=8)
     o = torch.tensor([[0.0, 0.0, 50.0]] * 3)
