@@ -91,10 +91,6 @@ class DynamicFitConfig:
     lambda_cos: float = 1e-4
     #: ``L_cos`` is estimated on the batch's first this-many samples (whole random rays)
     cos_points: int = 4096
-    #: each training ray's scene time is drawn uniformly within +- this fraction of the training frames'
-    #: spacing around its frame's time (0: the frame's time). Held-out frames sit between training
-    #: frames; without it the time planes only ever see the training instants.
-    time_jitter: float = 0.0
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
     #: learn a time-smooth correction of the telemetry poses (:mod:`fields.pose_drift`) with one
@@ -136,12 +132,6 @@ def split(dd: DynamicFlightData, every: int) -> tuple[list[int], list[int]]:
     test = sorted(order[k] for k in range(len(order)) if k % every == every - 1)
     train = sorted(order[k] for k in range(len(order)) if k % every != every - 1)
     return train, test
-
-
-def training_spacing01(train_t01: torch.Tensor) -> float:
-    """Median gap between consecutive training frames' normalised times (0 for fewer than 2 frames)."""
-    t = torch.sort(train_t01.reshape(-1).double()).values
-    return float(torch.quantile(t[1:] - t[:-1], 0.5)) if t.numel() >= 2 else 0.0
 
 
 def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConfig, flight: Path | None):
@@ -255,7 +245,6 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     has_mask = data.has_mask.to(dev)
     t01 = torch.from_numpy(dd.t01()).to(dev)
     train_t = torch.tensor(train_idx, device=dev)
-    jitter01 = cfg.time_jitter * training_spacing01(t01[train_t])
     hw = bank.hw
     fg_w = torch.ones(len(data.classes) + 1, device=dev)
     fg_w[1:] = cfg.mask_fg_weight
@@ -289,11 +278,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         dyn = (cls > 0).float()
         mask_w = iw[(cls > 0).long()]  # importance weights of the per-ray losses (all 1 without box rays)
         gate = dyn if (ext and cfg.gate) else None
-        t_ray = t01[fi]
-        if jitter01 > 0:
-            u = torch.rand(t_ray.shape, device=dev, generator=gen, dtype=t_ray.dtype)
-            t_ray = (t_ray + (2 * u - 1) * jitter01).clamp(0.0, 1.0)
-        res = model.render_rays(o, d, t_ray, fi, train=True, with_mask=cfg.lambda_mask > 0, dynamic_gate=gate,
+        res = model.render_rays(o, d, t01[fi], fi, train=True, with_mask=cfg.lambda_mask > 0, dynamic_gate=gate,
                                 with_features=ext and cfg.lambda_cos > 0, feature_points=cfg.cos_points, generator=gen)
         loss_rgb = torch.mean(((res["rgb"] - target) ** 2).mean(-1) * mask_w)
         loss = loss_rgb + regularisers(model, cfg)
