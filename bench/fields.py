@@ -15,9 +15,9 @@ calibrate on them (:mod:`fields.mask_calibration`). Evaluation renders
 at half resolution (160x120, truth area-averaged from 320x240) to keep the benchmark affordable
 on a busy 2-core machine; evaluation time is not counted as training time.
 
-    python bench/fields.py [--budget-s 300] [--configs hash-strat,hash-occ,planes-strat,planes-occ]
-    python bench/fields.py --configs hash-strat --rescore threshold=0.4,relative_threshold=0.5
-    python bench/fields.py --configs hash-strat --calibrate
+    python bench/fields.py [--budget-s 300] [--configs hash-occ32,hash-strat,planes-strat,planes-occ]
+    python bench/fields.py --configs hash-occ32 --rescore threshold=0.4,relative_threshold=0.5
+    python bench/fields.py --configs hash-occ32 --calibrate
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
 
 CONFIGS = {
-    # the `fit` default (FitConfig); pos25 gives better 15 m mask boxes but worse 35/50 m synthesis precision
+    # the `fit` default until session 10; pos25 gives better 15 m mask boxes but worse 35/50 m synthesis precision
     "hash-strat": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.0},
     "hash-strat-pos25": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "mask_pos_fraction": 0.25},
     # the fresh mask head starts as background (0.99) instead of ~75 % foreground everywhere
@@ -59,7 +59,7 @@ CONFIGS = {
     "hash-strat-s64": {"encoding": "hash", "sampler": "stratified", "n_samples": 64, "mask_pos_fraction": 0.0},
     "hash-strat-bg384": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "background_resolution": 384},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
-    # occupancy-guided samples at the default's count: where the density is, not evenly through the slab
+    # the `fit` default (FitConfig) since session 10: 32 samples spread over the occupied cells, not the whole slab
     "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
     "planes-occ": {"encoding": "planes", "sampler": "occupancy", "n_samples": 24},

@@ -14,7 +14,7 @@ of the image. Box classes are voted by the training frames' labels (``fields.lab
 (``*_mask_class``). Speed: synthetic images per minute (render + boxes + writing) on this process's
 threads.
 
-    python bench/synthesis.py [--config hash-strat] [--count 8] [--size 640x480]
+    python bench/synthesis.py [--config hash-occ32] [--count 8] [--size 640x480]
     python bench/synthesis.py --rescore threshold=0.6,min_score=0.6   # box rules on the saved masks
 
 Every run keeps the rendered masks, depths, poses and true boxes in ``bench/out/synthesis_probs.npz`` (``--probs``);
@@ -58,7 +58,7 @@ class Recorder:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--config", default="hash-strat", help="bench/fields.py config whose checkpoint to use")
+    ap.add_argument("--config", default="hash-occ32", help="bench/fields.py config whose checkpoint to use")
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--fit-budget-s", type=float, default=300.0, help="fit this long when there is no checkpoint")
     ap.add_argument("--count", type=int, default=8, help="novel views (half at 35 m, half at 50 m)")
