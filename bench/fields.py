@@ -58,6 +58,9 @@ CONFIGS = {
     # twice the stratified samples per ray (0.25 m apart along a 45° ray in the 11 m slab instead of 0.49 m)
     "hash-strat-s64": {"encoding": "hash", "sampler": "stratified", "n_samples": 64, "mask_pos_fraction": 0.0},
     "hash-strat-bg384": {"encoding": "hash", "sampler": "stratified", "n_samples": 32, "background_resolution": 384},
+    # the default with occupancy cells half as wide (0.25 m): narrower occupied columns around people
+    "hash-occ32-fine": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
+                        "occupancy_cell_m": (0.25, 0.25, 0.25)},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
     # the `fit` default (FitConfig) since session 10: 32 samples spread over the occupied cells, not the whole slab
     "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},

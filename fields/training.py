@@ -103,6 +103,8 @@ class FitConfig:
     lambda_empty: float = 0.0
     occupancy_every: int = 16
     occupancy_warmup: int = 200
+    #: occupancy grid cell (x, y, z metres; at most 256 cells per axis)
+    occupancy_cell_m: tuple[float, float, float] = (0.5, 0.5, 0.25)
     checkpoint_every_s: float = 60.0
     log_every_s: float = 10.0
     #: cell size multiplier over the finest GSD (1 = as fine as the data)
@@ -150,7 +152,7 @@ def build_model(data: FlightData, train_idx: list[int], cfg: FitConfig, flight: 
                      mask_encoding=cfg.mask_encoding, mask_resolutions=mask_res, mask_log2_table=mask_log2,
                      mask_init_background=cfg.mask_init_background)
     ext = np.asarray(bounds.extent)
-    grid = tuple(int(min(256, max(8, math.ceil(e / c)))) for e, c in zip(ext, (0.5, 0.5, 0.25), strict=True))
+    grid = tuple(int(min(256, max(8, math.ceil(e / c)))) for e, c in zip(ext, cfg.occupancy_cell_m, strict=True))
     sc = SamplerConfig(cfg.sampler, cfg.n_samples, 96, grid)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     return StaticModel(fc, sc, bounds.ground_z, radius, cfg.background_resolution), bounds, sizing
