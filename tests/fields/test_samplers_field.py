@@ -119,6 +119,20 @@ def test_occupancy_full_refresh_replaces_and_partial_refresh_keeps_the_maximum()
     assert torch.allclose(e, StratifiedSampler(32).edges(o, d, LO, HI, train=False), atol=1e-3)
 
 
+def test_occupancy_edges_of_rays_that_miss_graze_or_start_inside_the_box():
+    s = OccupancySampler((8, 8, 11), n_samples=16, n_coarse=64, update_fraction=1.0)
+    s.update(lambda p: (p[:, 2] < 0.0).float() * 1e9, LO, HI, full=True)  # huge density in the floor cell only
+    o = torch.tensor([[100.0, 0.0, 15.0], [-60.0, 0.0, 50.0], [0.0, 0.0, 2.0], [0.0, 0.0, 5.0]])
+    d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, -0.8], [0.0, 0.0, -1.0],
+                                                    [1.0, 0.0, 0.0]]), dim=-1)  # miss, grazing 50 m, inside, on top
+    for train in (False, True):
+        e = s.edges(o, d, LO, HI, train=train, generator=torch.Generator().manual_seed(1))
+        near, far, hit = ray_box(o, d, LO, HI)
+        assert torch.isfinite(e).all() and (e[:, 1:] >= e[:, :-1]).all()
+        assert torch.allclose(e[:, 0], near) and torch.allclose(e[:, -1], far)
+        assert (e[~hit, -1] - e[~hit, 0] == 0).all()  # a miss keeps zero-length intervals
+
+
 def test_background_below_and_above_horizon():
     bg = Background(0.0, 30.0, resolution=8)
     o = torch.tensor([[0.0, 0.0, 50.0]] * 3)
