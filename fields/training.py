@@ -49,7 +49,7 @@ class FitConfig:
 
     encoding: str = "hash"
     #: "occupancy" beat "stratified" at 300 s on 2 cores: +0.57 dB held-out, box IoU 0.767 vs 0.727, level at
-    #: 35 / 50 m; synthesis renders ~1.4x slower (bench/RESULTS.md, static fields session 10)
+    #: 35 / 50 m; synthesis renders 1.4-1.9x slower (bench/RESULTS.md, static fields session 10)
     sampler: str = "occupancy"
     n_samples: int = 32
     #: stop after this many iterations ...
