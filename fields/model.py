@@ -14,7 +14,7 @@ from torch import nn
 
 from fields.field import Background, FieldConfig, StaticField
 from fields.rendering import composite, distortion_loss, expected_depth, opacity, weights_from_density
-from fields.samplers import OccupancySampler, StratifiedSampler, ray_box, sample_points
+from fields.samplers import OccupancySampler, StratifiedSampler, grid_lookup, ray_box, sample_points
 
 
 @dataclass
@@ -102,12 +102,10 @@ class StaticModel(nn.Module):
 
     def _occupied(self, pts: torch.Tensor) -> torch.Tensor:
         """(N,) bool: the skip grid's cell of each point (N, 3) is occupied (outside the box: False)."""
-        f, grid = self.field, self.skip_grid
-        shape = torch.tensor(grid.shape, device=pts.device)
+        f = self.field
         x = (pts - f.lo) / (f.hi - f.lo)
         inside = ((x >= 0) & (x <= 1)).all(-1)
-        ijk = torch.minimum((x.clamp(0, 1) * shape).long(), shape - 1)
-        return inside & grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+        return inside & grid_lookup(self.skip_grid, pts, f.lo, f.hi)
 
     def _weights(self, origins: torch.Tensor, dirs: torch.Tensor, train: bool, skip: bool,
                  generator=None) -> tuple:

@@ -38,6 +38,14 @@ def ray_box(origins: torch.Tensor, dirs: torch.Tensor, lo: torch.Tensor, hi: tor
     return torch.where(hit, t_near, zero), torch.where(hit, t_far, zero), hit
 
 
+def grid_lookup(grid: torch.Tensor, pts: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """Value of the cell of a grid over the box [lo, hi] (cells along x, y, z) that holds each point
+    of ``pts`` (..., 3); points outside the box read the nearest edge cell."""
+    shape = torch.tensor(grid.shape, device=pts.device)
+    ijk = torch.minimum(((pts - lo) / (hi - lo)).clamp(0, 1).mul(shape).long(), shape - 1)
+    return grid[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
+
+
 class StratifiedSampler:
     """Evenly spaced (jittered in training) intervals inside the scene box."""
 
@@ -93,13 +101,16 @@ class OccupancySampler:
     ``empty_share``: sampling weight per metre of an empty stretch relative to an occupied one.
     """
 
+    #: density of a cell never refreshed ("may be occupied")
+    FRESH = torch.finfo(torch.float32).max
+
     def __init__(self, grid_shape: tuple[int, int, int], n_samples: int = 32, n_coarse: int = 96,
                  decay: float = 0.9, update_fraction: float = 1 / 8, empty_share: float = 0.05):
         self.grid_shape = tuple(int(g) for g in grid_shape)
         self.n_samples, self.n_coarse = int(n_samples), int(n_coarse)
         self.decay, self.update_fraction, self.empty_share = decay, update_fraction, float(empty_share)
         # start "everything may be occupied": the sampler is stratified until the grid learns
-        self.grid = torch.full(self.grid_shape, torch.finfo(torch.float32).max)
+        self.grid = torch.full(self.grid_shape, self.FRESH)
         self._cursor = 0
         self._occ = None  # occupied(), cached until the grid changes
 
@@ -119,7 +130,10 @@ class OccupancySampler:
     @torch.no_grad()
     def update(self, density_fn, lo: torch.Tensor, hi: torch.Tensor, generator=None, full: bool = False) -> None:
         """Refresh a slice of the cells (every cell with ``full``, replacing the old values): density
-        (1/m) at a random point per cell, kept as a moving maximum."""
+        (1/m) at a random point per cell, kept as a moving maximum. The first refresh of a fresh grid
+        is always full: its "may be occupied" must not linger for the ~1/decay sweeps a moving
+        maximum would take to forget it."""
+        full = full or bool((self.grid == self.FRESH).all())
         gx, gy, gz = self.grid_shape
         n_cells = gx * gy * gz
         k = n_cells if full else max(1, int(n_cells * self.update_fraction))
@@ -148,10 +162,7 @@ class OccupancySampler:
     def edges(self, origins, dirs, lo, hi, train: bool, generator=None) -> torch.Tensor:
         coarse = StratifiedSampler(self.n_coarse).edges(origins, dirs, lo, hi, train=False)
         mid = 0.5 * (coarse[:, 1:] + coarse[:, :-1])
-        pts = origins[:, None] + mid[..., None] * dirs[:, None]
-        shape = torch.tensor(self.grid_shape, device=pts.device)
-        ijk = torch.minimum(((pts - lo) / (hi - lo)).clamp(0, 1).mul(shape).long(), shape - 1)
-        occ = self.occupied(lo, hi)[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
+        occ = grid_lookup(self.occupied(lo, hi), origins[:, None] + mid[..., None] * dirs[:, None], lo, hi)
         share = torch.where(occ, 1.0, self.empty_share)
         return sample_pdf(coarse, share * (coarse[:, 1:] - coarse[:, :-1]), self.n_samples + 1, train, generator)
 

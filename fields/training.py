@@ -381,9 +381,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
             loss.backward()
             optim.step()
         if cfg.sampler == "occupancy" and step + 1 >= cfg.occupancy_warmup and (step + 1) % cfg.occupancy_every == 0:
-            # the first refresh reads every cell: the fresh grid's "all occupied" must not linger
-            model.sampler.update(model.field.density, model.field.lo, model.field.hi, generator=gen,
-                                 full=step + 1 < cfg.occupancy_warmup + cfg.occupancy_every)
+            model.sampler.update(model.field.density, model.field.lo, model.field.hi, generator=gen)
         after_step(float(loss_rgb.detach()), lr, "rgb")
 
     mask_steps = 0

@@ -119,6 +119,14 @@ def test_occupancy_full_refresh_replaces_and_partial_refresh_keeps_the_maximum()
     assert torch.allclose(e, StratifiedSampler(32).edges(o, d, LO, HI, train=False), atol=1e-3)
 
 
+def test_the_first_refresh_of_a_fresh_occupancy_grid_reads_every_cell():
+    s = OccupancySampler((4, 4, 4), update_fraction=0.25)
+    s.update(lambda p: torch.zeros(p.shape[0]), LO, HI)  # asked for a quarter, gets all: nothing stays "fresh"
+    assert not s.occupied(LO, HI).any()
+    s.update(lambda p: torch.full((p.shape[0],), 8.0), LO, HI)  # now a quarter only
+    assert (s.grid == 8.0).sum() == 16
+
+
 def test_occupancy_edges_of_rays_that_miss_graze_or_start_inside_the_box():
     s = OccupancySampler((8, 8, 11), n_samples=16, n_coarse=64, update_fraction=1.0)
     s.update(lambda p: (p[:, 2] < 0.0).float() * 1e9, LO, HI, full=True)  # huge density in the floor cell only
