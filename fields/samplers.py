@@ -112,7 +112,7 @@ class OccupancySampler:
         # start "everything may be occupied": the sampler is stratified until the grid learns
         self.grid = torch.full(self.grid_shape, self.FRESH)
         self._cursor = 0
-        self._occ = None  # occupied(), cached until the grid changes
+        self._occ = None  # occupied(), cached until the grid changes (the box lo/hi is fixed per model)
 
     def state_dict(self) -> dict:
         return {"grid": self.grid.clone(), "cursor": self._cursor}
