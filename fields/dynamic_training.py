@@ -93,6 +93,9 @@ class DynamicFitConfig:
     cos_points: int = 4096
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
+    #: extended only: the dynamic time planes act on ``f_d`` in proportion to the point's dynamic
+    #: probability (:class:`fields.kplanes.KPlanesConfig` ``time_gate``)
+    time_gate: bool = False
     #: learn a time-smooth correction of the telemetry poses (:mod:`fields.pose_drift`) with one
     #: knot per this many seconds of flight (None: take the poses as given). Worth +0.85 / +2.44 dB
     #: held-out to extended K-Planes on the 80 / 300-frame bench flights, +0.18 / +0.05 dB to stock
@@ -139,7 +142,7 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     bounds = scene_bounds(flight, data.camera, [data.cam_from_world[i] for i in train_idx])
     sizing = plane_sizing(bounds.extent, bounds.finest_gsd_m, cfg.max_resolution, cfg.cell_factor)
     fc = make_field_config(cfg.kind, bounds, sizing, dd.n, data.n, len(data.classes), cfg.features, cfg.hidden,
-                           cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding)
+                           cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, cfg.time_gate)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     knots, why = pose_knots(dd, cfg)

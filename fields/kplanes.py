@@ -76,6 +76,12 @@ def cosine_separation(f_static: list[torch.Tensor], f_dynamic: list[torch.Tensor
     return total
 
 
+def _time_gate_prob(masks: list[torch.Tensor]) -> torch.Tensor:
+    """The dynamic probability (1, N), detached, from the time planes' mask channels (each (1, N)):
+    sigmoid of their mean, as :class:`KPlanesField` reports ``dynamic_prob``."""
+    return torch.sigmoid(torch.cat(masks, dim=0).mean(dim=0, keepdim=True)).detach()
+
+
 def sample_plane_cn(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Bilinear features (C, N), contiguous, of ``plane`` (1, C, Rv, Ru) at ``u, v`` in [0, 1].
 
@@ -118,6 +124,12 @@ class KPlanesConfig:
     extended: bool = False
     init_low: float = 0.1
     init_high: float = 0.5
+    #: extended only: a point's dynamic time features enter ``f_d`` in proportion to its dynamic
+    #: probability ``p`` (sigmoid of the mean mask channel, detached):
+    #: ``f_d = S_d * (1 + p * (T_d - 1))`` with ``S_d``, ``T_d`` the products of the dynamic spatial and
+    #: time planes. Where nobody walks (p -> 0) ``f_d`` is the time-invariant ``S_d``, not a pattern that
+    #: a time plane, shared along a line, picks up from every person's rays at that instant.
+    time_gate: bool = False
 
     def resolutions(self) -> list[tuple[int, int, int]]:
         return [tuple(int(r * m) for r in self.base_resolution) for m in self.multipliers]
@@ -216,8 +228,10 @@ class KPlanesEncoding(nn.Module):
         d = self.config.features
         # features are (C, N) inside: contiguous products; one transpose at the end
         feats, masks, stat_space, dyn_space = [], [], [], []
+        time_gate = self.config.extended and self.config.time_gate
+        dyn_parts = []  # per scale: f_d, or (S_d, T_d) when the time gate must wait for every mask value
         for s in range(self.n_scales):
-            dyn = None
+            dyn = times = None
             for k, (a, b) in enumerate(SPACE_PLANES + TIME_PLANES):
                 f = sample_plane_cn(self.dynamic_planes[6 * s + k], coords[:, a], coords[:, b])
                 if k >= 3 and self.config.extended:
@@ -225,20 +239,31 @@ class KPlanesEncoding(nn.Module):
                     f = f[:d]
                 if k < 3 and self.config.extended:
                     dyn_space.append(f.t())
-                dyn = f if dyn is None else dyn * f
+                if time_gate and k >= 3:
+                    times = f if times is None else times * f
+                else:
+                    dyn = f if dyn is None else dyn * f
+            dyn_parts.append((dyn, times) if time_gate else dyn)
             if self.config.extended:
                 stat = None
                 for k, (a, b) in enumerate(SPACE_PLANES):
                     f = sample_plane_cn(self.static_planes[3 * s + k], coords[:, a], coords[:, b])
                     stat_space.append(f.t())
                     stat = f if stat is None else stat * f
+                feats.append(stat)
+        if time_gate:
+            p = _time_gate_prob(masks)
+            dyn_parts = [space * (1.0 + p * (times - 1.0)) for space, times in dyn_parts]
+        if self.config.extended:
+            stats, feats = feats, []
+            for stat, dyn in zip(stats, dyn_parts, strict=True):
                 if dynamic_gate is not None:
                     g = dynamic_gate.reshape(1, -1).to(stat.dtype)
                     stat = gate_grad(stat, 1.0 - g)
                     dyn = gate_grad(dyn, g)
                 feats += [stat, dyn]
-            else:
-                feats.append(dyn)
+        else:
+            feats = dyn_parts
         mask_feats = masks
         if self.config.extended and dynamic_gate is not None:
             # the mask channel lives on the dynamic time planes: the colour loss of static pixels
@@ -273,9 +298,11 @@ class KPlanesEncoding(nn.Module):
         g_a = dynamic[:n_a].to(coords.dtype).reshape(1, -1)
         stat_rows, dyn_rows = cp[: n_b + n_a], cp[n_b:]  # gradient-carrying points of each side
         d = self.config.features
+        time_gate = self.config.time_gate
         feats, masks, mask_feats, stat_space, dyn_space = [], [], [], [], []
+        stat_parts, dyn_parts = [], []
         for s in range(self.n_scales):
-            dyn_g = dyn_n = None
+            dyn_g = dyn_n = time_g = time_n = None
             for k, (a, b) in enumerate(SPACE_PLANES + TIME_PLANES):
                 plane = self.dynamic_planes[6 * s + k]
                 f = sample_plane_cn(plane, dyn_rows[:, a], dyn_rows[:, b])
@@ -289,8 +316,13 @@ class KPlanesEncoding(nn.Module):
                     f, f_n = f[:d], f_n[:d]
                 else:
                     dyn_space.append(f[:, :n_a].t())
-                dyn_g = f if dyn_g is None else dyn_g * f
-                dyn_n = f_n if dyn_n is None else dyn_n * f_n
+                if time_gate and k >= 3:
+                    time_g = f if time_g is None else time_g * f
+                    time_n = f_n if time_n is None else time_n * f_n
+                else:
+                    dyn_g = f if dyn_g is None else dyn_g * f
+                    dyn_n = f_n if dyn_n is None else dyn_n * f_n
+            dyn_parts.append((dyn_g, dyn_n, time_g, time_n))
             stat_g = stat_n = None
             for k, (a, b) in enumerate(SPACE_PLANES):
                 plane = self.static_planes[3 * s + k]
@@ -300,9 +332,14 @@ class KPlanesEncoding(nn.Module):
                 stat_space.append(f[:, n_b:].t())
                 stat_g = f if stat_g is None else stat_g * f
                 stat_n = f_n if stat_n is None else stat_n * f_n
-            stat = torch.cat([stat_g[:, :n_b], gate_grad(stat_g[:, n_b:], 1.0 - g_a), stat_n], dim=1)
-            dyn = torch.cat([dyn_n, gate_grad(dyn_g[:, :n_a], g_a), dyn_g[:, n_a:]], dim=1)
-            feats += [stat, dyn]
+            stat_parts.append(torch.cat([stat_g[:, :n_b], gate_grad(stat_g[:, n_b:], 1.0 - g_a), stat_n], dim=1))
+        if time_gate:
+            p = _time_gate_prob(masks)  # (1, n), in the permuted order: B rows, then A and C
+            p_n, p_g = p[:, :n_b], p[:, n_b:]
+            dyn_parts = [(sg * (1.0 + p_g * (tg - 1.0)), sn * (1.0 + p_n * (tn - 1.0)), None, None)
+                         for sg, sn, tg, tn in dyn_parts]
+        for stat, (dyn_g, dyn_n, _, _) in zip(stat_parts, dyn_parts, strict=True):
+            feats += [stat, torch.cat([dyn_n, gate_grad(dyn_g[:, :n_a], g_a), dyn_g[:, n_a:]], dim=1)]
         inv = torch.empty_like(perm)
         inv[perm] = torch.arange(n, device=perm.device)
         return {"features": torch.cat(feats + mask_feats, dim=0).t()[inv],

@@ -100,13 +100,40 @@ def test_field_outputs_are_finite_and_gradients_survive_100_steps():
     assert KPlanesFieldConfig.from_json(cfg.to_json()) == cfg
 
 
+def test_time_gate_hand_values_static_where_the_mask_says_nobody_is():
+    """``f_d = S_d * (1 + p * (T_d - 1))``: at p = 0 the time planes drop out, at p = 1 it is the stock
+    product, in between linear; the mask channel (the source of p) gets no gradient through it."""
+    cfg = KPlanesConfig(base_resolution=(2, 2, 2), multipliers=(1,), time_resolution=2, features=1, extended=True,
+                        time_gate=True)
+    enc = KPlanesEncoding(cfg)
+    with torch.no_grad():
+        for k, p in enumerate(enc.dynamic_planes[:3]):
+            p.fill_(2.0 + k)  # S_d = 2 * 3 * 4 = 24
+        for p in enc.dynamic_planes[3:]:
+            p[:, :1] = 0.5  # T_d = 0.125
+    x, t = torch.full((3, 3), 0.5), torch.full((3,), 0.5)
+    for logit, p_dyn in ((-1e4, 0.0), (1e4, 1.0), (0.0, 0.5)):
+        with torch.no_grad():
+            for p in enc.dynamic_planes[3:]:
+                p[:, 1:] = logit
+        f_d = enc(x, t)["features"][:, 1]
+        assert torch.allclose(f_d, torch.full((3,), 24.0 * (1 + p_dyn * (0.125 - 1.0))))
+    x_req = x.clone()
+    out = enc(x_req, t)
+    out["features"][:, 1].sum().backward()
+    assert all(p.grad[:, 1:].abs().sum() == 0 for p in enc.dynamic_planes[3:])  # mask channel: no gradient
+    assert all(p.grad[:, :1].abs().sum() > 0 for p in enc.dynamic_planes[3:])  # time features: half of it
+
+
+@pytest.mark.parametrize("time_gate", [False, True])
 @pytest.mark.parametrize("pattern,space_points", [("mixed", 24), ("mixed", None), ("mixed", 0), ("static", 24),
                                                   ("dynamic", 24), ("mixed", 1000)])
-def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points):
+def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, time_gate):
     """The fast path (planes sampled with autograd only where the gate lets gradients through) gives the
     values and the gradients of planes and coordinates that gating every sample gives."""
     torch.manual_seed(3)
-    cfg = KPlanesConfig(base_resolution=(5, 4, 3), multipliers=(1, 2), time_resolution=6, features=3, extended=True)
+    cfg = KPlanesConfig(base_resolution=(5, 4, 3), multipliers=(1, 2), time_resolution=6, features=3, extended=True,
+                        time_gate=time_gate)
     enc = KPlanesEncoding(cfg)
     with torch.no_grad():
         for p in enc.dynamic_planes:  # time planes away from their initial 1 / 0, so every gradient is non-trivial
