@@ -94,8 +94,12 @@ class DynamicFitConfig:
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
     #: extended only: the dynamic time planes act on ``f_d`` in proportion to the point's dynamic
-    #: probability (:class:`fields.kplanes.KPlanesConfig` ``time_gate``)
-    time_gate: bool = False
+    #: probability (:class:`fields.kplanes.KPlanesConfig` ``time_gate``). None: on when every frame's
+    #: pose is SfM-refined, off on telemetry poses. On SfM poses it was worth +1.23 / +2.06 dB held-out
+    #: (two seeds, 300 frames, all in the background) and -0.25 dB on 80 frames; on telemetry poses
+    #: +0.32 / +0.20 dB on 80 frames but -4.29 dB on the 300-frame flight, whose poses drift 0.4 m
+    #: (bench/RESULTS.md, Table III session 11)
+    time_gate: bool | None = None
     #: learn a time-smooth correction of the telemetry poses (:mod:`fields.pose_drift`) with one
     #: knot per this many seconds of flight (None: take the poses as given). Worth +0.85 / +2.44 dB
     #: held-out to extended K-Planes on the 80 / 300-frame bench flights, +0.18 / +0.05 dB to stock
@@ -141,15 +145,27 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     data = dd.data
     bounds = scene_bounds(flight, data.camera, [data.cam_from_world[i] for i in train_idx])
     sizing = plane_sizing(bounds.extent, bounds.finest_gsd_m, cfg.max_resolution, cfg.cell_factor)
+    gate, why_gate = time_gate(dd, cfg)
     fc = make_field_config(cfg.kind, bounds, sizing, dd.n, data.n, len(data.classes), cfg.features, cfg.hidden,
-                           cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, cfg.time_gate)
+                           cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, gate)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     knots, why = pose_knots(dd, cfg)
     sizing.reasoning.append(why)
+    if cfg.kind == "kplanes-ext":
+        sizing.reasoning.append(why_gate)
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
                          dd.t0_us, dd.span_us, pose_knots=knots)
     return model, bounds, asdict(sizing)
+
+
+def time_gate(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[bool, str]:
+    """Whether extended K-Planes gates its time planes by the dynamic mask here, and why (for fit.json)."""
+    if cfg.time_gate is not None:
+        return bool(cfg.time_gate), f"time gate: {'on' if cfg.time_gate else 'off'} (set explicitly)"
+    if dd.all_poses_sfm:
+        return True, f"time gate: on, all {dd.n} poses are SfM-refined"
+    return False, "time gate: off, the poses are telemetry (the gate was measured to fail on drifting poses)"
 
 
 def pose_knots(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[int, str]:

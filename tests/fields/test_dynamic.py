@@ -197,6 +197,7 @@ def test_fit_gradients_finite_and_checkpoint_round_trip(dynamic_flight, tmp_path
         assert torch.isfinite(p).all()
     model, ck = load_dynamic_checkpoint(tmp_path / "dynamic.pt", "cpu")
     assert ck["step"] == 3 and model.kind == kind
+    assert not model.field_config.planes.time_gate  # telemetry poses: the time gate's default is off
     a = r.model.render_image(dd.data.camera.scaled(0.25), dd.data.cam_from_world[1], 0.3)
     b = model.render_image(dd.data.camera.scaled(0.25), dd.data.cam_from_world[1], 0.3)
     assert np.allclose(a["rgb"], b["rgb"], atol=1e-6)
@@ -463,7 +464,7 @@ def test_cli_fit_with_pose_knots_and_render_recorded_poses_at_the_corrected_pose
 
 
 def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dynamic_flight, tmp_path):
-    from fields.dynamic_training import pose_knots
+    from fields.dynamic_training import pose_knots, time_gate
 
     dd = load_dynamic_flight(dynamic_flight)
     assert set(dd.pose_sources) == {"telemetry"} and not dd.all_poses_sfm
@@ -483,6 +484,12 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     assert pose_knots(dd, DynamicFitConfig(pose_knot_s=None))[0] == 0
     r = fit_dynamic(sfm, DynamicFitConfig(kind="kplanes-ext", **TINY))
     assert r.model.pose_drift is None and any("SfM-refined" in line for line in r.sizing["reasoning"])
+    # the time gate follows the same evidence: on for SfM-refined poses, off for telemetry, or as set
+    assert r.model.field_config.planes.time_gate
+    assert any(line.startswith("time gate: on") for line in r.sizing["reasoning"])
+    assert time_gate(sfm, DynamicFitConfig())[0] and not time_gate(dd, DynamicFitConfig())[0]
+    assert time_gate(dd, DynamicFitConfig(time_gate=True)) == (True, "time gate: on (set explicitly)")
+    assert not time_gate(sfm, DynamicFitConfig(time_gate=False))[0]
     # one frame left to telemetry (SfM could not register it): its pose may drift, so learn the correction
     pf.frames[3].source = "telemetry"
     pf.save(flight / "derived" / "poses.json")
