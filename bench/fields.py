@@ -62,6 +62,12 @@ CONFIGS = {
     "hash-occ32-fine": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
                         "occupancy_cell_m": (0.25, 0.25, 0.25)},
     "hash-occ": {"encoding": "hash", "sampler": "occupancy", "n_samples": 24},
+    # the default with 5x the distortion loss (weights drawn together: people more opaque?); collapsed (session 11)
+    "hash-occ32-dist1e2": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
+                           "lambda_dist": 1e-2},
+    # the default with the occupancy grid's first refresh after 100 steps instead of 200; worse (session 11)
+    "hash-occ32-warm100": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
+                           "occupancy_warmup": 100},
     # the `fit` default (FitConfig) since session 10: 32 samples spread over the occupied cells, not the whole slab
     "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
