@@ -17,9 +17,9 @@ fuses ``f_s``, ``f_d`` and the three mask values into a D-dim feature. Training 
 apart) and gates gradients by the box mask: pixels on static background update only the static
 planes, pixels inside the boxes of moving people only the dynamic planes (:class:`GateGrad`).
 
-The time gate (``KPlanesConfig.time_gate``; ours, not the paper's, the fit's default): the time
-planes act on ``f_d`` only as far as the mask value says the point is dynamic. A time plane is shared
-along a line (zt: every point at one height), so without the gate every person's rays at instant t
+The time gate (``KPlanesConfig.time_gate``; ours, not the paper's; the fit's default on SfM-refined
+poses): the time planes act on ``f_d`` only as far as the mask value says the point is dynamic. A time
+plane is shared along a line (zt: every point at one height), so without the gate every person's rays at instant t
 changed ``f_d`` at background points too, a per-instant pattern the fusion MLP learned to fit the
 training frames with and that the held-out instants in between did not share.
 """
