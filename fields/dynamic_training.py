@@ -96,7 +96,7 @@ class DynamicFitConfig:
     #: extended only: the dynamic time planes act on ``f_d`` in proportion to the point's dynamic
     #: probability (:class:`fields.kplanes.KPlanesConfig` ``time_gate``). None: on when every frame's
     #: pose is SfM-refined, off on telemetry poses. On SfM poses it was worth +1.23 / +2.06 dB held-out
-    #: (two seeds, 300 frames, all in the background) and -0.25 dB on 80 frames; on telemetry poses
+    #: (two seeds, 300 frames, all in the background) and -0.25 / +0.29 dB on 80 frames; on telemetry poses
     #: +0.32 / +0.20 dB on 80 frames but -4.29 dB on the 300-frame flight, whose poses drift 0.4 m
     #: (bench/RESULTS.md, Table III session 11)
     time_gate: bool | None = None
