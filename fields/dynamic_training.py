@@ -97,7 +97,8 @@ class DynamicFitConfig:
     #: probability (:class:`fields.kplanes.KPlanesConfig` ``time_gate``). None: on when every frame's
     #: pose is SfM-refined, off on telemetry poses. On SfM poses it was worth +1.23 / +2.06 dB held-out
     #: (two seeds, 300 frames, all in the background) and -0.25 / +0.29 dB on 80 frames; on telemetry poses
-    #: +0.32 / +0.20 dB on 80 frames but -4.29 dB on the 300-frame flight, whose poses drift 0.4 m
+    #: +0.32 / +0.20 dB on 80 frames but -4.29 dB on the 300-frame flight, whose poses drift 0.4 m (with
+    #: the pose-drift knots; without them +0.32 dB)
     #: (bench/RESULTS.md, Table III session 11)
     time_gate: bool | None = None
     #: learn a time-smooth correction of the telemetry poses (:mod:`fields.pose_drift`) with one
