@@ -88,6 +88,12 @@ def _time_gate_prob(masks: list[torch.Tensor]) -> torch.Tensor:
     return torch.sigmoid(torch.cat(masks, dim=0).mean(dim=0, keepdim=True)).detach()
 
 
+def _dynamic_features(dyn: torch.Tensor, times: torch.Tensor | None, p: torch.Tensor | None) -> torch.Tensor:
+    """``f_d`` of one scale: ``dyn`` already holds the whole product without the time gate
+    (``times`` None); with it, ``dyn`` is ``S_d`` and ``times`` is ``T_d``: ``S_d * (1 + p * (T_d - 1))``."""
+    return dyn if times is None else dyn * (1.0 + p * (times - 1.0))
+
+
 def sample_plane_cn(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Bilinear features (C, N), contiguous, of ``plane`` (1, C, Rv, Ru) at ``u, v`` in [0, 1].
 
@@ -235,7 +241,7 @@ class KPlanesEncoding(nn.Module):
         # features are (C, N) inside: contiguous products; one transpose at the end
         feats, masks, stat_space, dyn_space = [], [], [], []
         time_gate = self.config.extended and self.config.time_gate
-        dyn_parts = []  # per scale: f_d, or (S_d, T_d) when the time gate must wait for every mask value
+        dyn_parts, stats = [], []  # per scale: (f_d, None), or (S_d, T_d) for the time gate; f_s
         for s in range(self.n_scales):
             dyn = times = None
             for k, (a, b) in enumerate(SPACE_PLANES + TIME_PLANES):
@@ -249,27 +255,25 @@ class KPlanesEncoding(nn.Module):
                     times = f if times is None else times * f
                 else:
                     dyn = f if dyn is None else dyn * f
-            dyn_parts.append((dyn, times) if time_gate else dyn)
+            dyn_parts.append((dyn, times))
             if self.config.extended:
                 stat = None
                 for k, (a, b) in enumerate(SPACE_PLANES):
                     f = sample_plane_cn(self.static_planes[3 * s + k], coords[:, a], coords[:, b])
                     stat_space.append(f.t())
                     stat = f if stat is None else stat * f
-                feats.append(stat)
-        if time_gate:
-            p = _time_gate_prob(masks)
-            dyn_parts = [space * (1.0 + p * (times - 1.0)) for space, times in dyn_parts]
+                stats.append(stat)
+        p = _time_gate_prob(masks) if time_gate else None
+        dyns = [_dynamic_features(dyn, times, p) for dyn, times in dyn_parts]
         if self.config.extended:
-            stats, feats = feats, []
-            for stat, dyn in zip(stats, dyn_parts, strict=True):
+            for stat, dyn in zip(stats, dyns, strict=True):
                 if dynamic_gate is not None:
                     g = dynamic_gate.reshape(1, -1).to(stat.dtype)
                     stat = gate_grad(stat, 1.0 - g)
                     dyn = gate_grad(dyn, g)
                 feats += [stat, dyn]
         else:
-            feats = dyn_parts
+            feats = dyns
         mask_feats = masks
         if self.config.extended and dynamic_gate is not None:
             # the mask channel lives on the dynamic time planes: the colour loss of static pixels
@@ -339,12 +343,12 @@ class KPlanesEncoding(nn.Module):
                 stat_g = f if stat_g is None else stat_g * f
                 stat_n = f_n if stat_n is None else stat_n * f_n
             stat_parts.append(torch.cat([stat_g[:, :n_b], gate_grad(stat_g[:, n_b:], 1.0 - g_a), stat_n], dim=1))
+        p_n = p_g = None
         if time_gate:
             p = _time_gate_prob(masks)  # (1, n), in the permuted order: B rows, then A and C
             p_n, p_g = p[:, :n_b], p[:, n_b:]
-            dyn_parts = [(sg * (1.0 + p_g * (tg - 1.0)), sn * (1.0 + p_n * (tn - 1.0)), None, None)
-                         for sg, sn, tg, tn in dyn_parts]
-        for stat, (dyn_g, dyn_n, _, _) in zip(stat_parts, dyn_parts, strict=True):
+        for stat, (dyn_g, dyn_n, time_g, time_n) in zip(stat_parts, dyn_parts, strict=True):
+            dyn_g, dyn_n = _dynamic_features(dyn_g, time_g, p_g), _dynamic_features(dyn_n, time_n, p_n)
             feats += [stat, torch.cat([dyn_n, gate_grad(dyn_g[:, :n_a], g_a), dyn_g[:, n_a:]], dim=1)]
         inv = torch.empty_like(perm)
         inv[perm] = torch.arange(n, device=perm.device)
