@@ -10,7 +10,10 @@ its table is stored densely (index = x + y*(rx+1) + z*(rx+1)*(ry+1)); otherwise 
 hashed with the XOR of coordinate * prime (int32 arithmetic, wrapping) modulo the table size.
 The fast path computes all 8 corner indices of all levels in one go, gathers with
 ``F.embedding_bag(mode="sum", per_sample_weights=trilinear weights)`` and scatters the gradient
-with ``index_add_`` (custom autograd function): no (N, L, 8, F) intermediate is kept for backward.
+with a weighted ``bincount`` per feature on the CPU, ``index_add_`` on CUDA (custom autograd
+function): no (N, L, 8, F) intermediate is kept for backward. On the CPU the corner arithmetic
+(indices and weights), the hash grid's biggest cost in eager mode, is one ``torch.compile``-d
+kernel when :func:`compiled_corners` allows it (opt-in; eager if compiling fails).
 
 Tri-planes (K-Planes, static part): per scale three planes xy, xz, yz of ``features`` channels,
 sampled bilinearly (``F.grid_sample``), multiplied across the planes and concatenated across
@@ -22,12 +25,16 @@ A K-Planes time axis would add planes (xt, yt, zt) to :class:`TriPlanes`; the in
 
 from __future__ import annotations
 
+import logging
 import math
+import os
 from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+log = logging.getLogger(__name__)
 
 #: Instant-NGP's primes (the first is 1 so that x is not scrambled); the others as int32.
 PRIMES = (1, 2654435761 - 2**32, 805459861)
@@ -73,6 +80,78 @@ class _EmbeddingBagSum(torch.autograd.Function):
         return torch.stack(cols, dim=1).to(grad_out.dtype), None, None
 
 
+def _corners(x01, res, res_i, hash_mask, offsets, n_dense: int):
+    """Corner indices and trilinear weights of every point at every level.
+
+    ``x01`` (N, 3) in [0, 1]; ``res`` / ``res_i`` (L, 3) cells per axis as float32 / int32;
+    ``hash_mask`` (L,) table size - 1; ``offsets`` (L,) first row of each level in the table;
+    the first ``n_dense`` levels are stored densely. Returns global table indices (N*L, 8) int64 and
+    weights (N*L, 8), corner c = (dx, dy, dz) at position dx + 2 dy + 4 dz. Per-axis terms are
+    computed once (N, L, 2) in int32 and combined by broadcasting, so nothing of shape
+    (N, L, 8, 3) is built.
+    """
+    x = x01.float().clamp(0.0, 1.0)
+    pos = x.unsqueeze(1) * res  # (N, L, 3) in cell units
+    base_f = torch.minimum(pos.floor(), res - 1)  # keeps x=1 inside the last cell
+    frac = pos - base_f
+    base = base_f.to(torch.int32)
+    b0 = torch.stack([base, base + 1], dim=-1)  # (N, L, 3, 2)
+    wts = torch.stack([1 - frac, frac], dim=-1)  # (N, L, 3, 2)
+    w = (wts[:, :, 2, :, None, None] * wts[:, :, 1, None, :, None] * wts[:, :, 0, None, None, :])
+    # Dense levels (coarse) come first; each level computes only its own kind of index.
+    k, n_levels = n_dense, res.shape[0]
+    parts = []
+    if k > 0:
+        # dense: x + y*(rx+1) + z*(rx+1)*(ry+1), exact for the levels that fit
+        bd = b0[:, :k]
+        rx = res_i[:k, 0].view(1, -1, 1) + 1
+        ry = res_i[:k, 1].view(1, -1, 1) + 1
+        dx, dy, dz = bd[:, :, 0], bd[:, :, 1] * rx, bd[:, :, 2] * (rx * ry)
+        parts.append(dz[:, :, :, None, None] + dy[:, :, None, :, None] + dx[:, :, None, None, :])
+    if k < n_levels:
+        # hashed: XOR of coordinate * prime, int32 wrapping; table sizes are powers of two -> mask
+        bh = b0[:, k:]
+        hx, hy, hz = bh[:, :, 0] * PRIMES[0], bh[:, :, 1] * PRIMES[1], bh[:, :, 2] * PRIMES[2]
+        h = hz[:, :, :, None, None] ^ hy[:, :, None, :, None] ^ hx[:, :, None, None, :]
+        parts.append(h & hash_mask[k:].view(1, -1, 1, 1, 1))
+    idx = parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
+    idx = idx.to(torch.int64) + offsets.view(1, -1, 1, 1, 1)
+    return idx.reshape(-1, 8), w.reshape(-1, 8)
+
+
+#: below this many points the eager path is used (compiled graphs specialise on sizes 0 and 1,
+#: and tiny batches gain nothing)
+_COMPILE_MIN_POINTS = 64
+_compiled = {"fn": None, "failed": False}
+
+
+def compiled_corners() -> bool:
+    """Whether the hash grid may use its ``torch.compile``-d corner kernel on the CPU.
+
+    Opt-in: ``UAVSIM_COMPILE=1`` in the environment. Off by default until a full fit has measured it:
+    the kernel is exact and the hash grid's forward + backward 1.0-1.6x faster in
+    ``bench/hashgrid.py``, but the first compile costs 1-20 s of the budget (bench/RESULTS.md,
+    static session 12). Off for good in this process once a compile has failed (no C++ compiler,
+    say), with a warning.
+    """
+    return os.environ.get("UAVSIM_COMPILE", "0") == "1" and not _compiled["failed"]
+
+
+def _compiled_corners():
+    if not compiled_corners():
+        return None
+    if _compiled["fn"] is None:
+        # dynamic: one graph for every batch size (the occupancy sampler's live count varies)
+        _compiled["fn"] = torch.compile(_corners, dynamic=True)
+    return _compiled["fn"]
+
+
+def _disable_compiled(err: Exception) -> None:
+    _compiled["failed"] = True
+    log.warning("torch.compile of the hash-grid corners failed (%s: %s); using the eager path",
+                type(err).__name__, str(err).splitlines()[0] if str(err) else "")
+
+
 class HashGrid(nn.Module):
     """Multiresolution hash encoding; see the module docstring."""
 
@@ -108,38 +187,22 @@ class HashGrid(nn.Module):
         return self.n_levels * self.config.features
 
     def _indices_weights(self, x01: torch.Tensor):
-        """Global table indices (N*L, 8) int64 and trilinear weights (N*L, 8).
+        """Global table indices (N*L, 8) int64 and trilinear weights (N*L, 8); see :func:`_corners`.
 
-        Corner c = (dx, dy, dz) is at position dx + 2 dy + 4 dz. Per-axis terms are computed once
-        (N, L, 2) in int32 and combined by broadcasting, so nothing of shape (N, L, 8, 3) is built.
+        On the CPU the arithmetic runs as one ``torch.compile``-d kernel when :func:`compiled_corners`
+        allows it (same values; 4x faster than eager, which builds a dozen (N, L, ...) temporaries).
+        The weights carry no gradient to ``x01`` in either path.
         """
-        x = x01.float().clamp(0.0, 1.0)
-        pos = x.unsqueeze(1) * self.res  # (N, L, 3) in cell units
-        base_f = torch.minimum(pos.floor(), self.res - 1)  # keeps x=1 inside the last cell
-        frac = pos - base_f
-        base = base_f.to(torch.int32)
-        b0 = torch.stack([base, base + 1], dim=-1)  # (N, L, 3, 2)
-        wts = torch.stack([1 - frac, frac], dim=-1)  # (N, L, 3, 2)
-        w = (wts[:, :, 2, :, None, None] * wts[:, :, 1, None, :, None] * wts[:, :, 0, None, None, :])
-        # Dense levels (coarse) come first; each level computes only its own kind of index.
-        k = self.n_dense_prefix
-        parts = []
-        if k > 0:
-            # dense: x + y*(rx+1) + z*(rx+1)*(ry+1), exact for the levels that fit
-            bd = b0[:, :k]
-            rx = self.res_i[:k, 0].view(1, -1, 1) + 1
-            ry = self.res_i[:k, 1].view(1, -1, 1) + 1
-            dx, dy, dz = bd[:, :, 0], bd[:, :, 1] * rx, bd[:, :, 2] * (rx * ry)
-            parts.append(dz[:, :, :, None, None] + dy[:, :, None, :, None] + dx[:, :, None, None, :])
-        if k < self.n_levels:
-            # hashed: XOR of coordinate * prime, int32 wrapping; table sizes are powers of two -> mask
-            bh = b0[:, k:]
-            hx, hy, hz = bh[:, :, 0] * PRIMES[0], bh[:, :, 1] * PRIMES[1], bh[:, :, 2] * PRIMES[2]
-            h = hz[:, :, :, None, None] ^ hy[:, :, None, :, None] ^ hx[:, :, None, None, :]
-            parts.append(h & self.hash_mask[k:].view(1, -1, 1, 1, 1))
-        idx = parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
-        idx = idx.to(torch.int64) + self.offsets.view(1, -1, 1, 1, 1)
-        return idx.reshape(-1, 8), w.reshape(-1, 8)
+        args = (x01, self.res, self.res_i, self.hash_mask, self.offsets, self.n_dense_prefix)
+        if x01.shape[0] >= _COMPILE_MIN_POINTS and not x01.is_cuda:
+            fast = _compiled_corners()
+            if fast is not None:
+                with torch.no_grad():
+                    try:
+                        return fast(*args)
+                    except Exception as err:  # a missing or broken C++ toolchain: stay correct, go slower
+                        _disable_compiled(err)
+        return _corners(*args)
 
     def forward(self, x01: torch.Tensor) -> torch.Tensor:
         n = x01.shape[0]

@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from fields import encodings
 from fields.encodings import HashGrid, HashGridConfig, TriPlaneConfig, TriPlanes, geometric_resolutions, make_encoding
 
 
@@ -42,6 +43,48 @@ def test_fast_matches_reference_values_and_gradients(make):
     (gr,) = torch.autograd.grad((ref * g).sum(), list(enc.parameters()) if isinstance(enc, HashGrid)
                                 else [enc.planes[0]])
     assert torch.allclose(gf, gr, atol=1e-4), (gf - gr).abs().max()
+
+
+def test_compiled_corners_equal_eager_exactly(monkeypatch):
+    """The compiled corner kernel gives the eager indices bit for bit and the same weights, at any
+    batch size after the first (one dynamic graph), and the gradient still reaches the table."""
+    monkeypatch.setenv("UAVSIM_COMPILE", "1")
+    enc = _hash()
+    for n in (600, 777):
+        x = _points(n, n)
+        args = (x, enc.res, enc.res_i, enc.hash_mask, enc.offsets, enc.n_dense_prefix)
+        idx_e, w_e = encodings._corners(*args)
+        idx_c, w_c = enc._indices_weights(x)
+        assert torch.equal(idx_c, idx_e)
+        assert torch.allclose(w_c, w_e, atol=1e-6)
+    assert encodings.compiled_corners()  # it compiled (a failure would have switched it off)
+    fast = enc(x)
+    assert torch.allclose(fast, enc.reference_forward(x), atol=1e-5)
+    (g,) = torch.autograd.grad(fast.sum(), [enc.table])
+    assert torch.isfinite(g).all() and g.abs().sum() > 0
+
+
+def test_compile_failure_falls_back_to_eager(monkeypatch, caplog):
+    monkeypatch.setenv("UAVSIM_COMPILE", "1")
+    monkeypatch.setitem(encodings._compiled, "failed", False)
+
+    def broken(*args):
+        raise RuntimeError("no C++ compiler")
+
+    monkeypatch.setitem(encodings._compiled, "fn", broken)
+    enc = _hash()
+    x = _points(300, 5)
+    with caplog.at_level("WARNING"):
+        out = enc(x)
+    assert "eager" in caplog.text
+    assert torch.allclose(out, enc.reference_forward(x), atol=1e-5)
+    assert not encodings.compiled_corners()
+
+
+def test_compile_off_by_environment(monkeypatch):
+    monkeypatch.setenv("UAVSIM_COMPILE", "0")
+    assert not encodings.compiled_corners()
+    assert encodings._compiled_corners() is None
 
 
 def test_planes_all_gradients_match():
