@@ -1,7 +1,7 @@
 """Hash-grid forward + backward time, eager against the compiled corner kernel.
 
-Usage: ``OMP_WAIT_POLICY=PASSIVE python bench/hashgrid.py THREADS`` (``UAVSIM_COMPILE=1``: compiled,
-else eager). 32,768 points (1,024 rays x 32 samples), 2 features per level, levels growing 1.45x from
+Usage: ``OMP_WAIT_POLICY=PASSIVE python bench/hashgrid.py THREADS`` (compiled, the default; ``UAVSIM_COMPILE=0``:
+eager). 32,768 points (1,024 rays x 32 samples), 2 features per level, levels growing 1.45x from
 (8, 6, 3) cells; the first call (which compiles) is timed apart from the mean of the next 10.
 """
 

@@ -5,6 +5,10 @@ import os
 # Before torch is imported anywhere: spinning OpenMP threads make torch 2-13x slower when another
 # process holds a core (measured on these 2-core machines).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# The hash grid's compiled corner kernel (the default) costs seconds to compile per grid shape and
+# gains nothing on tests' few steps: tests run eager, except those that switch it on to check it
+# equals eager (tests/fields/test_encodings.py). Subprocesses (CLI tests) inherit this.
+os.environ.setdefault("UAVSIM_COMPILE", "0")
 
 import pytest  # noqa: E402
 

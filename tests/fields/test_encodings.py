@@ -81,6 +81,12 @@ def test_compile_failure_falls_back_to_eager(monkeypatch, caplog):
     assert not encodings.compiled_corners()
 
 
+def test_compile_on_by_default(monkeypatch):
+    monkeypatch.delenv("UAVSIM_COMPILE", raising=False)
+    monkeypatch.setitem(encodings._compiled, "failed", False)
+    assert encodings.compiled_corners()
+
+
 def test_compile_off_by_environment(monkeypatch):
     monkeypatch.setenv("UAVSIM_COMPILE", "0")
     assert not encodings.compiled_corners()

@@ -1,0 +1,149 @@
+"""What PSNR at 35 / 50 m the 15 m orbit's data allows: an oracle that knows the ground as sharply as
+the sharpest training frame saw it.
+
+``bench/fields.py`` scores renders of a field fitted to the 15 m orbit against simulator truth at
+35 m and 50 m. Those views see ground the orbit saw only from far off, at grazing angles, or not at
+all. No field can render that ground sharper than the data showed it, so this script asks what the
+best possible render scores: for each pixel of a truth view (at the bench's evaluation resolution,
+160x120), the ground point (ENU z = 0) it sees, the ground footprint of one pixel there in the view
+(``g_view``) and in each 320x240 training frame that sees the point (``g_train``, the finest over
+frames), both as the side of a square of the same area, metres: ``range / f / sqrt(cos incidence)``.
+The oracle pixel is the truth image low-passed to ``max(1, g_train / g_view)`` pixels (area
+downsampling and bilinear upsampling, in octave steps of sqrt(2)); a pixel whose ground no training
+frame saw gets the truth image's mean colour. The oracle is generous: it ignores heights (people,
+trees, structures lean and occlude differently), pose and photometric error, and it takes the single
+sharpest view's resolution everywhere. Its PSNR is an upper bound on what the orbit's data supports,
+not a result any field reached.
+
+``--model PATH`` (a checkpoint ``bench/fields.py`` saved, e.g. ``bench/out/fields_hash-occ32.pt``) also
+scores that field's renders, and both the field and the oracle by region of the ground: under the
+orbit (<= 20 m from the centre), inside the field's box beyond the orbit, outside the box (the
+cheap background).
+
+    python bench/fields_ceiling.py [--model bench/out/fields_hash-occ32.pt] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from bench._common import OUT_DIR, write_json  # noqa: E402
+from bench.fields import ALTITUDE_VIEWS, half, orbit_mask, prepare  # noqa: E402
+
+
+def ground_hits(camera, cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of ``camera``: the ground point (ENU, z = 0; (H*W, 3), NaN where the ray does not
+    come down) and the pixel's ground footprint there (m, side of the equal-area square)."""
+    uv = camera.pixel_grid().reshape(-1, 2)
+    o, d = camera.rays_world(cam_from_world, uv)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    down = d[:, 2] < -1e-6
+    t = np.where(down, -o[2] / np.where(down, d[:, 2], -1.0), np.nan)
+    pts = o + t[:, None] * d
+    f = 0.5 * (camera.fx + camera.fy)
+    footprint = t / f / np.sqrt(np.abs(np.where(down, d[:, 2], np.nan)))
+    return pts, footprint
+
+
+def finest_training_footprint(camera, train_Ts: list[np.ndarray], pts: np.ndarray) -> np.ndarray:
+    """(N,) the finest ground footprint (m) at which any training frame sees each ground point (inf: none)."""
+    f = 0.5 * (camera.fx + camera.fy)
+    best = np.full(len(pts), np.inf)
+    ok_pts = np.isfinite(pts).all(1)
+    for T in train_Ts:
+        p, front = camera.project_world(np.where(ok_pts[:, None], pts, 0.0), T)
+        inside = ok_pts & front & (p[:, 0] >= 0) & (p[:, 0] < camera.width) & (p[:, 1] >= 0) & (p[:, 1] < camera.height)
+        centre = -T[:3, :3].T @ T[:3, 3]
+        v = centre[None, :] - pts
+        rng = np.linalg.norm(v, axis=1)
+        cos_inc = np.clip(v[:, 2] / np.maximum(rng, 1e-9), 1e-6, 1.0)
+        g = rng / f / np.sqrt(cos_inc)
+        best = np.where(inside & (g < best), g, best)
+    return best
+
+
+def oracle_image(truth: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """``truth`` (H, W, 3) uint8 low-passed per pixel to ``scale`` (H, W) pixels (>= 1; inf: unseen,
+    the image's mean colour), in sqrt(2) octave steps; float in [0, 1]."""
+    import cv2
+
+    img = truth.astype(np.float32) / 255.0
+    h, w = img.shape[:2]
+    out = np.empty_like(img)
+    mean = img.reshape(-1, 3).mean(0)
+    level = np.where(np.isfinite(scale), np.round(2 * np.log2(np.maximum(scale, 1.0))), -1).astype(int)
+    for lv in np.unique(level):
+        sel = level == lv
+        if lv < 0:
+            out[sel] = mean
+            continue
+        s = 2.0 ** (lv / 2)
+        small = cv2.resize(img, (max(1, round(w / s)), max(1, round(h / s))), interpolation=cv2.INTER_AREA)
+        out[sel] = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)[sel]
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
+    ap.add_argument("--model", type=Path, default=None, help="a saved field to score by region too")
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+
+    from fields.data import load_flight
+    from fields.evaluation import psnr
+
+    camera, views = prepare(args.flight)
+    data = load_flight(args.flight)
+    train_idx, _ = data.split(8)
+    train_Ts = [data.cam_from_world[i] for i in train_idx]
+    cam_half = camera.scaled(0.5)
+    model = None
+    if args.model:
+        from fields.training import load_checkpoint
+
+        model, _ = load_checkpoint(args.model, "cpu")
+        model.eval()
+        lo, hi = model.field.lo.numpy(), model.field.hi.numpy()
+    rows = []
+    for alt, az, T, rgb in views:
+        truth = half(rgb)
+        pts, g_view = ground_hits(cam_half, T)
+        g_train = finest_training_footprint(camera, train_Ts, pts)
+        scale = (g_train / g_view).reshape(truth.shape[:2])
+        oracle = oracle_image(truth, scale)
+        orbit = half(orbit_mask(camera, T).astype(np.float32)) > 0.5
+        seen = np.isfinite(scale)
+        rows.append({"altitude_m": alt, "azimuth_deg": az, "oracle_psnr": psnr(oracle, truth),
+                     "oracle_psnr_orbit": psnr(oracle, truth, orbit),
+                     "unseen_fraction": float(1 - seen.mean()),
+                     "median_blur_px": float(np.median(np.maximum(scale[seen], 1.0))),
+                     "blur_over_2px_fraction": float((scale > 2).mean())})
+        if model is not None:
+            g = pts[:, :2].reshape(*truth.shape[:2], 2)
+            in_box = np.isfinite(g).all(-1) & (g >= lo[:2]).all(-1) & (g <= hi[:2]).all(-1)
+            regions = {"orbit": orbit, "box_beyond_orbit": in_box & ~orbit, "outside_box": ~in_box}
+            render = model.render_image(cam_half, T, with_mask=False)["rgb"]
+            rows[-1]["field_psnr"] = psnr(render, truth)
+            for name, sel in regions.items():
+                rows[-1][f"share_{name}"] = float(sel.mean())
+                rows[-1][f"field_psnr_{name}"] = psnr(render, truth, sel)
+                rows[-1][f"oracle_psnr_{name}"] = psnr(oracle, truth, sel)
+        print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in rows[-1].items()}), flush=True)
+    summary = {}
+    for alt in ALTITUDE_VIEWS:
+        sel = [r for r in rows if r["altitude_m"] == alt]
+        summary[str(alt)] = {k: round(float(np.nanmean([r[k] for r in sel])), 3) for k in sel[0]
+                             if k not in ("altitude_m", "azimuth_deg")}
+    print(json.dumps(summary), flush=True)
+    write_json("fields_ceiling", {"views": rows, "mean_by_altitude": summary}, args.json)
+
+
+if __name__ == "__main__":
+    main()
