@@ -117,6 +117,9 @@ class DynamicFitConfig:
     pose_lr_rad: float = 5e-5
     #: weight of the knots' mean squared correction (m^2; anchors the gauge to the telemetry)
     lambda_pose: float = 1e-4
+    #: the pose knots learn from rays outside the label boxes only (a walking person's motion looks
+    #: like a pose error; box rays still render through the corrected pose, without moving it)
+    pose_from_background: bool = False
     checkpoint_every_s: float = 60.0
     log_every_s: float = 10.0
 
@@ -291,10 +294,12 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             k = torch.randint(len(pos_frame), (n_box,), device=dev, generator=gen)
             fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
         o, d = bank.rays(fi, pi)
+        cls = masks[fi, pi]
         if model.pose_drift is not None:
             o, d = model.pose_drift.apply(o, d, t01[fi])
+            if cfg.pose_from_background:
+                o, d = background_pose_grad(o, d, cls == 0)
         target = images[fi, pi].float() / 255.0
-        cls = masks[fi, pi]
         dyn = (cls > 0).float()
         mask_w = iw[(cls > 0).long()]  # importance weights of the per-ray losses (all 1 without box rays)
         gate = dyn if (ext and cfg.gate) else None
@@ -345,6 +350,14 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     if ckpt:
         save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
     return DynamicFitResult(model, step, train_s, curve, bounds, sizing)
+
+
+def background_pose_grad(origins: torch.Tensor, dirs: torch.Tensor, background: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The same corrected rays (R, 3) each, but only the rays where ``background`` (R,) bool is set pass
+    gradients back to the pose correction; the others render through it as a constant."""
+    keep = background[:, None]
+    return torch.where(keep, origins, origins.detach()), torch.where(keep, dirs, dirs.detach())
 
 
 def _extra(bounds, sizing, curve, gen) -> dict:
