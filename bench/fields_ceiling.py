@@ -7,7 +7,8 @@ all. No field can render that ground sharper than the data showed it, so this sc
 best possible render scores: for each pixel of a truth view (at the bench's evaluation resolution,
 160x120), the ground point (ENU z = 0) it sees, the ground footprint of one pixel there in the view
 (``g_view``) and in each 320x240 training frame that sees the point (``g_train``, the finest over
-frames), both as the side of a square of the same area, metres: ``range / f / sqrt(cos incidence)``.
+frames), both as the side of a square of the same area, metres: ``range / f / sqrt(cos incidence)``
+(``--longest``: the footprint's long axis, ``range / f / cos incidence``).
 The oracle pixel is the truth image low-passed to ``max(1, g_train / g_view)`` pixels (area
 downsampling and bilinear upsampling, in octave steps of sqrt(2)); a pixel whose ground no training
 frame saw gets the truth image's mean colour. The oracle is generous: it ignores heights (people,
@@ -37,9 +38,16 @@ from bench._common import OUT_DIR, write_json  # noqa: E402
 from bench.fields import ALTITUDE_VIEWS, half, orbit_mask, prepare  # noqa: E402
 
 
-def ground_hits(camera, cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def footprint_m(range_m, cos_incidence, focal_px: float, longest: bool = False):
+    """Ground footprint of one pixel (m) at ``range_m`` and incidence ``cos_incidence`` (to the vertical):
+    the side of the equal-area square ``range / f / sqrt(cos)``, or with ``longest`` its long axis along
+    the view ``range / f / cos`` (foreshortening)."""
+    return range_m / focal_px / (cos_incidence if longest else np.sqrt(cos_incidence))
+
+
+def ground_hits(camera, cam_from_world: np.ndarray, longest: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel of ``camera``: the ground point (ENU, z = 0; (H*W, 3), NaN where the ray does not
-    come down) and the pixel's ground footprint there (m, side of the equal-area square)."""
+    come down) and the pixel's ground footprint there (m; :func:`footprint_m`)."""
     uv = camera.pixel_grid().reshape(-1, 2)
     o, d = camera.rays_world(cam_from_world, uv)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
@@ -47,12 +55,13 @@ def ground_hits(camera, cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndar
     t = np.where(down, -o[2] / np.where(down, d[:, 2], -1.0), np.nan)
     pts = o + t[:, None] * d
     f = 0.5 * (camera.fx + camera.fy)
-    footprint = t / f / np.sqrt(np.abs(np.where(down, d[:, 2], np.nan)))
-    return pts, footprint
+    return pts, footprint_m(t, np.abs(np.where(down, d[:, 2], np.nan)), f, longest)
 
 
-def finest_training_footprint(camera, train_Ts: list[np.ndarray], pts: np.ndarray) -> np.ndarray:
-    """(N,) the finest ground footprint (m) at which any training frame sees each ground point (inf: none)."""
+def finest_training_footprint(camera, train_Ts: list[np.ndarray], pts: np.ndarray, longest: bool = False
+                              ) -> np.ndarray:
+    """(N,) the finest ground footprint (m, :func:`footprint_m`) at which any training frame sees each
+    ground point (inf: none)."""
     f = 0.5 * (camera.fx + camera.fy)
     best = np.full(len(pts), np.inf)
     ok_pts = np.isfinite(pts).all(1)
@@ -63,7 +72,7 @@ def finest_training_footprint(camera, train_Ts: list[np.ndarray], pts: np.ndarra
         v = centre[None, :] - pts
         rng = np.linalg.norm(v, axis=1)
         cos_inc = np.clip(v[:, 2] / np.maximum(rng, 1e-9), 1e-6, 1.0)
-        g = rng / f / np.sqrt(cos_inc)
+        g = footprint_m(rng, cos_inc, f, longest)
         best = np.where(inside & (g < best), g, best)
     return best
 
@@ -93,6 +102,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
     ap.add_argument("--model", type=Path, default=None, help="a saved field to score by region too")
+    ap.add_argument("--longest", action="store_true",
+                    help="footprints by their long axis (foreshortened along the view), not their area: a "
+                         "stricter oracle")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
 
@@ -114,8 +126,8 @@ def main() -> None:
     rows = []
     for alt, az, T, rgb in views:
         truth = half(rgb)
-        pts, g_view = ground_hits(cam_half, T)
-        g_train = finest_training_footprint(camera, train_Ts, pts)
+        pts, g_view = ground_hits(cam_half, T, args.longest)
+        g_train = finest_training_footprint(camera, train_Ts, pts, args.longest)
         scale = (g_train / g_view).reshape(truth.shape[:2])
         oracle = oracle_image(truth, scale)
         orbit = half(orbit_mask(camera, T).astype(np.float32)) > 0.5

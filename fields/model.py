@@ -206,6 +206,13 @@ class StaticModel(nn.Module):
     def distortion(self, res: dict) -> torch.Tensor:
         return distortion_loss(res["weights"], res["t_norm"]).mean()
 
+    def geometry_distortion(self, origins: torch.Tensor, dirs: torch.Tensor, generator=None) -> torch.Tensor:
+        """Mean distortion loss of R rays (world ENU, unit directions) from the density alone (no
+        colour, mask or background): for rays no camera took, e.g. :func:`topdown_rays`."""
+        edges, _, _, _, w = self._weights(origins, dirs, True, False, generator)
+        span = (edges[:, -1:] - edges[:, :1]).clamp_min(1e-6)
+        return distortion_loss(w, (edges - edges[:, :1]) / span).mean()
+
     @torch.no_grad()
     def render_image(self, camera, cam_from_world: np.ndarray, chunk: int = 4096, with_mask: bool = True,
                      image_idx: int | None = None) -> dict:
@@ -236,3 +243,17 @@ class StaticModel(nn.Module):
 
     def rays_hit_box(self, origins, dirs) -> torch.Tensor:
         return ray_box(origins, dirs, self.field.lo, self.field.hi)[2]
+
+
+def topdown_rays(lo: torch.Tensor, hi: torch.Tensor, n: int, max_tilt_deg: float, generator=None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` rays looking down into the scene box [lo, hi] (world ENU, m) as a higher camera would:
+    origins 1 m above the box top, uniform over its xy; unit directions within ``max_tilt_deg`` of
+    nadir (tilt uniform in angle, azimuth uniform). Returns origins (n, 3) and directions (n, 3)."""
+    u = torch.rand(n, 4, device=lo.device, generator=generator)
+    xy = lo[:2] + u[:, :2] * (hi[:2] - lo[:2])
+    origins = torch.cat([xy, (hi[2] + 1.0).expand(n, 1)], dim=-1)
+    tilt = torch.deg2rad(torch.as_tensor(max_tilt_deg, device=lo.device)) * u[:, 2]
+    az = 2 * torch.pi * u[:, 3]
+    dirs = torch.stack([torch.sin(tilt) * torch.cos(az), torch.sin(tilt) * torch.sin(az), -torch.cos(tilt)], -1)
+    return origins, dirs
