@@ -21,7 +21,11 @@ scores that field's renders, and both the field and the oracle by region of the 
 orbit (<= 20 m from the centre), inside the field's box beyond the orbit, outside the box (the
 cheap background).
 
-    python bench/fields_ceiling.py [--model bench/out/fields_hash-occ32.pt] [--json OUT]
+``--occlusion`` makes the oracle honest about heights: the surface is the first hit with the ground or a
+tree or structure of the simulator world, and a training frame sees it only when nothing solid stands
+between (the far ground, seen from the other side of the orbit at grazing angles, hides behind trees).
+
+    python bench/fields_ceiling.py [--occlusion] [--longest] [--model bench/out/fields_hash-occ32.pt] [--json OUT]
 """
 
 from __future__ import annotations
@@ -77,6 +81,39 @@ def finest_training_footprint(camera, train_Ts: list[np.ndarray], pts: np.ndarra
     return best
 
 
+def visible_from_training(world, camera, train_Ts: list[np.ndarray], view_T: np.ndarray, g_train: np.ndarray,
+                          view_camera) -> np.ndarray:
+    """``--occlusion``: ``g_train`` (N,) with inf where no training frame sees the surface the view's pixel
+    sees. The surface point is the view ray's first hit with the ground or a static solid of ``world``
+    (trees, structures; people are too small to matter); a training frame sees it when it projects into
+    the frame and no solid lies on the segment from the camera centre to it (convex solids: a back face
+    counts as hidden by its own front). Footprints stay the ground's (:func:`footprint_m`)."""
+    from sim.primitives import intersect
+
+    uv = view_camera.pixel_grid().reshape(-1, 2)
+    o, d = view_camera.rays_world(view_T, uv)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(o, d.shape)
+    t = np.where(d[:, 2] < -1e-6, -o[:, 2] / np.minimum(d[:, 2], -1e-6), np.inf)
+    for prim in world.scenery:
+        t = np.minimum(t, intersect(prim, o, d, 1e-4))
+    surf = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+    out = np.where(np.isfinite(t), g_train, np.inf)
+    seen = np.zeros(len(surf), bool)
+    for T in train_Ts:
+        p, front = camera.project_world(surf, T)
+        inside = front & (p[:, 0] >= 0) & (p[:, 0] < camera.width) & (p[:, 1] >= 0) & (p[:, 1] < camera.height)
+        centre = np.broadcast_to(-T[:3, :3].T @ T[:3, 3], surf.shape)
+        v = surf - centre
+        dist = np.linalg.norm(v, axis=1)
+        u = v / np.maximum(dist, 1e-9)[:, None]
+        clear = inside.copy()
+        for prim in world.scenery:
+            clear &= ~(intersect(prim, centre, u, 1e-4) < dist - 1e-3)
+        seen |= clear
+    return np.where(seen, out, np.inf)
+
+
 def oracle_image(truth: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """``truth`` (H, W, 3) uint8 low-passed per pixel to ``scale`` (H, W) pixels (>= 1; inf: unseen,
     the image's mean colour), in sqrt(2) octave steps; float in [0, 1]."""
@@ -102,6 +139,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--flight", type=Path, default=OUT_DIR / "fields_flight")
     ap.add_argument("--model", type=Path, default=None, help="a saved field to score by region too")
+    ap.add_argument("--occlusion", action="store_true",
+                    help="a pixel counts as seen only where a training frame sees its surface unoccluded by the "
+                         "world's trees and structures (needs the simulator world)")
     ap.add_argument("--longest", action="store_true",
                     help="footprints by their long axis (foreshortened along the view), not their area: a "
                          "stricter oracle")
@@ -123,11 +163,18 @@ def main() -> None:
         model, _ = load_checkpoint(args.model, "cpu")
         model.eval()
         lo, hi = model.field.lo.numpy(), model.field.hi.numpy()
+    world = None
+    if args.occlusion:
+        from sim.world import make_world
+
+        world = make_world(seed=0)
     rows = []
     for alt, az, T, rgb in views:
         truth = half(rgb)
         pts, g_view = ground_hits(cam_half, T, args.longest)
         g_train = finest_training_footprint(camera, train_Ts, pts, args.longest)
+        if world is not None:
+            g_train = visible_from_training(world, camera, train_Ts, T, g_train, cam_half)
         scale = (g_train / g_view).reshape(truth.shape[:2])
         oracle = oracle_image(truth, scale)
         orbit = half(orbit_mask(camera, T).astype(np.float32)) > 0.5
