@@ -11,10 +11,11 @@ frames), both as the side of a square of the same area, metres: ``range / f / sq
 (``--longest``: the footprint's long axis, ``range / f / cos incidence``).
 The oracle pixel is the truth image low-passed to ``max(1, g_train / g_view)`` pixels (area
 downsampling and bilinear upsampling, in octave steps of sqrt(2)); a pixel whose ground no training
-frame saw gets the truth image's mean colour. The oracle is generous: it ignores heights (people,
-trees, structures lean and occlude differently), pose and photometric error, and it takes the single
-sharpest view's resolution everywhere. Its PSNR is an upper bound on what the orbit's data supports,
-not a result any field reached.
+frame saw gets the truth image's mean colour. Where pixels were seen the oracle is generous: it
+ignores pose and photometric error, takes the single sharpest view's resolution everywhere and (without
+``--occlusion``) ignores heights. Where they were not, the mean colour is a plain guess that a field
+filling the gap from its surroundings could beat. So its PSNR says what the data supports, roughly; it
+is not a result any field reached.
 
 ``--model PATH`` (a checkpoint ``bench/fields.py`` saved, e.g. ``bench/out/fields_hash-occ32.pt``) also
 scores that field's renders, and both the field and the oracle by region of the ground: under the
