@@ -191,6 +191,7 @@ def main() -> None:
             regions = {"orbit": orbit, "box_beyond_orbit": in_box & ~orbit, "outside_box": ~in_box}
             render = model.render_image(cam_half, T, with_mask=False)["rgb"]
             rows[-1]["field_psnr"] = psnr(render, truth)
+            rows[-1]["field_psnr_seen"] = psnr(render, truth, seen)  # what the field could know
             for name, sel in regions.items():
                 rows[-1][f"share_{name}"] = float(sel.mean())
                 rows[-1][f"field_psnr_{name}"] = psnr(render, truth, sel)
