@@ -118,9 +118,10 @@ class DynamicFitConfig:
     #: weight of the knots' mean squared correction (m^2; anchors the gauge to the telemetry)
     lambda_pose: float = 1e-4
     #: the pose knots learn from rays outside the label boxes only (a walking person's motion looks
-    #: like a pose error; box rays still render through the corrected pose, without moving it). On the
-    #: 300-frame telemetry flight: extended with the time gate 20.99 -> 23.53 dB held-out, still 2.87 dB
-    #: below stock (26.40 with it); off by default (bench/RESULTS.md, Table III session 13)
+    #: like a pose error; box rays still render through the corrected pose, without moving it). Held-out
+    #: dB on the 300-frame telemetry flight: extended + time gate 20.99 -> 23.53, extended 25.28 -> 24.70,
+    #: stock 26.24 -> 26.40; on 80 frames extended 27.41 -> 27.67, stock 25.51 -> 25.40. Off: it leaves
+    #: extended below stock on the long flight (bench/RESULTS.md, Table III session 13)
     pose_from_background: bool = False
     checkpoint_every_s: float = 60.0
     log_every_s: float = 10.0
