@@ -122,27 +122,35 @@ def half(img: np.ndarray) -> np.ndarray:
     return cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
 
 
-def covered_mask(camera, T, train_Ts) -> np.ndarray:
-    """(H, W) bool: the pixel's ground point (z = 0) lies in >= 2 training frames."""
+def rays_to_ground(camera, T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every pixel's ray of ``camera`` at ``cam_from_world`` ``T``: origins (N, 3), unit directions (N, 3),
+    world ENU, and the distance (N,) m along the ray to the ground plane z = 0 (inf where it does not come down)."""
     uv = camera.pixel_grid().reshape(-1, 2)
     o, d = camera.rays_world(T, uv)
     t = np.where(d[:, 2] < -1e-6, -o[2] / np.minimum(d[:, 2], -1e-6), np.inf)
+    return np.broadcast_to(o, d.shape), d, t
+
+
+def in_frame(camera, uv: np.ndarray, front: np.ndarray) -> np.ndarray:
+    """(N,) bool: projected points ``uv`` (N, 2) in front of the camera fall inside its image."""
+    return front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+
+
+def covered_mask(camera, T, train_Ts) -> np.ndarray:
+    """(H, W) bool: the pixel's ground point (z = 0) lies in >= 2 training frames."""
+    o, d, t = rays_to_ground(camera, T)
     pts = o + t[:, None] * d
-    count = np.zeros(len(uv), int)
+    count = np.zeros(len(t), int)
     for Tt in train_Ts:
-        p, front = camera.project_world(pts, Tt)
-        ok = front & (p[:, 0] >= 0) & (p[:, 0] < camera.width) & (p[:, 1] >= 0) & (p[:, 1] < camera.height)
-        count += ok
+        count += in_frame(camera, *camera.project_world(pts, Tt))
     return (count >= 2).reshape(camera.height, camera.width) & np.isfinite(t).reshape(camera.height, camera.width)
 
 
 def orbit_mask(camera, T, radius_m: float = 20.0) -> np.ndarray:
     """(H, W) bool: the pixel's ground point (z = 0) lies within ``radius_m`` of the scene centre,
     i.e. under the 15 m orbit (radius 20 m) that the training frames were taken from."""
-    uv = camera.pixel_grid().reshape(-1, 2)
-    o, d = camera.rays_world(T, uv)
-    t = np.where(d[:, 2] < -1e-6, -o[2] / np.minimum(d[:, 2], -1e-6), np.inf)
-    g = o[:2] + np.where(np.isfinite(t), t, 0.0)[:, None] * d[:, :2]
+    o, d, t = rays_to_ground(camera, T)
+    g = o[:, :2] + np.where(np.isfinite(t), t, 0.0)[:, None] * d[:, :2]
     return ((np.linalg.norm(g, axis=1) <= radius_m) & np.isfinite(t)).reshape(camera.height, camera.width)
 
 

@@ -40,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
-from bench.fields import ALTITUDE_VIEWS, half, orbit_mask, prepare  # noqa: E402
+from bench.fields import ALTITUDE_VIEWS, half, in_frame, orbit_mask, prepare, rays_to_ground  # noqa: E402
 
 
 def footprint_m(range_m, cos_incidence, focal_px: float, longest: bool = False):
@@ -53,14 +53,10 @@ def footprint_m(range_m, cos_incidence, focal_px: float, longest: bool = False):
 def ground_hits(camera, cam_from_world: np.ndarray, longest: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel of ``camera``: the ground point (ENU, z = 0; (H*W, 3), NaN where the ray does not
     come down) and the pixel's ground footprint there (m; :func:`footprint_m`)."""
-    uv = camera.pixel_grid().reshape(-1, 2)
-    o, d = camera.rays_world(cam_from_world, uv)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    down = d[:, 2] < -1e-6
-    t = np.where(down, -o[2] / np.where(down, d[:, 2], -1.0), np.nan)
-    pts = o + t[:, None] * d
+    o, d, t = rays_to_ground(camera, cam_from_world)
+    t = np.where(np.isfinite(t), t, np.nan)
     f = 0.5 * (camera.fx + camera.fy)
-    return pts, footprint_m(t, np.abs(np.where(down, d[:, 2], np.nan)), f, longest)
+    return o + t[:, None] * d, footprint_m(t, np.abs(d[:, 2]), f, longest)
 
 
 def finest_training_footprint(camera, train_Ts: list[np.ndarray], pts: np.ndarray, longest: bool = False
@@ -71,8 +67,7 @@ def finest_training_footprint(camera, train_Ts: list[np.ndarray], pts: np.ndarra
     best = np.full(len(pts), np.inf)
     ok_pts = np.isfinite(pts).all(1)
     for T in train_Ts:
-        p, front = camera.project_world(np.where(ok_pts[:, None], pts, 0.0), T)
-        inside = ok_pts & front & (p[:, 0] >= 0) & (p[:, 0] < camera.width) & (p[:, 1] >= 0) & (p[:, 1] < camera.height)
+        inside = ok_pts & in_frame(camera, *camera.project_world(np.where(ok_pts[:, None], pts, 0.0), T))
         centre = -T[:3, :3].T @ T[:3, 3]
         v = centre[None, :] - pts
         rng = np.linalg.norm(v, axis=1)
@@ -91,19 +86,14 @@ def visible_from_training(world, camera, train_Ts: list[np.ndarray], view_T: np.
     counts as hidden by its own front). Footprints stay the ground's (:func:`footprint_m`)."""
     from sim.primitives import intersect
 
-    uv = view_camera.pixel_grid().reshape(-1, 2)
-    o, d = view_camera.rays_world(view_T, uv)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    o = np.broadcast_to(o, d.shape)
-    t = np.where(d[:, 2] < -1e-6, -o[:, 2] / np.minimum(d[:, 2], -1e-6), np.inf)
+    o, d, t = rays_to_ground(view_camera, view_T)
     for prim in world.scenery:
         t = np.minimum(t, intersect(prim, o, d, 1e-4))
     surf = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
     out = np.where(np.isfinite(t), g_train, np.inf)
     seen = np.zeros(len(surf), bool)
     for T in train_Ts:
-        p, front = camera.project_world(surf, T)
-        inside = front & (p[:, 0] >= 0) & (p[:, 0] < camera.width) & (p[:, 1] >= 0) & (p[:, 1] < camera.height)
+        inside = in_frame(camera, *camera.project_world(surf, T))
         centre = np.broadcast_to(-T[:3, :3].T @ T[:3, 3], surf.shape)
         v = surf - centre
         dist = np.linalg.norm(v, axis=1)

@@ -197,8 +197,7 @@ class StaticModel(nn.Module):
         bg = self.background(origins, dirs)
         res = {"rgb": composite(w, rgb.view(r, s, 3), bg), "acc": opacity(w),
                "depth": expected_depth(w, mid, edges[:, -1]), "weights": w, "sample_z": pts.view(r, s, 3)[..., 2]}
-        span = (edges[:, -1:] - edges[:, :1]).clamp_min(1e-6)
-        res["t_norm"] = (edges - edges[:, :1]) / span
+        res["t_norm"] = _normalised_edges(edges)
         if with_mask:
             res["mask_probs"] = self._mask_probs(w, pts, geo)
         return res
@@ -210,8 +209,7 @@ class StaticModel(nn.Module):
         """Mean distortion loss of R rays (world ENU, unit directions) from the density alone (no
         colour, mask or background): for rays no camera took, e.g. :func:`topdown_rays`."""
         edges, _, _, _, w = self._weights(origins, dirs, True, False, generator)
-        span = (edges[:, -1:] - edges[:, :1]).clamp_min(1e-6)
-        return distortion_loss(w, (edges - edges[:, :1]) / span).mean()
+        return distortion_loss(w, _normalised_edges(edges)).mean()
 
     @torch.no_grad()
     def render_image(self, camera, cam_from_world: np.ndarray, chunk: int = 4096, with_mask: bool = True,
@@ -243,6 +241,12 @@ class StaticModel(nn.Module):
 
     def rays_hit_box(self, origins, dirs) -> torch.Tensor:
         return ray_box(origins, dirs, self.field.lo, self.field.hi)[2]
+
+
+def _normalised_edges(edges: torch.Tensor) -> torch.Tensor:
+    """Interval edges (R, S+1) of each ray scaled to [0, 1] over its own span (the distortion loss's input)."""
+    span = (edges[:, -1:] - edges[:, :1]).clamp_min(1e-6)
+    return (edges - edges[:, :1]) / span
 
 
 def topdown_rays(lo: torch.Tensor, hi: torch.Tensor, n: int, max_tilt_deg: float, generator=None
