@@ -136,6 +136,36 @@ def pose_errors(model, dd, indices: list[int], truth_path: Path) -> dict | None:
     return {"given": stats(given, truths), "fitted": stats(fitted, truths)}
 
 
+def frame_alignment(model, dd, train_idx: list[int], val_idx: list[int], truth_path: Path) -> dict | None:
+    """Misregistration (px) of true ground points between each frame and a render at its pose
+    (:mod:`fields.pose_alignment`), for the poses as given and as the model renders them (drift
+    knots applied): the world similarity is fitted on the training frames, then applied to the
+    training and the held-out frames."""
+    import json
+
+    import numpy as np
+
+    from fields.pose_alignment import alignment_report
+
+    if not truth_path.is_file() or not train_idx:
+        return None
+    true = {f["frame"]: np.asarray(f["cam_from_world"]) for f in json.loads(truth_path.read_text())["frames"]}
+    t01 = dd.t01()
+    cam = dd.data.camera
+
+    def poses(kind, idx):
+        if kind == "given":
+            return [dd.data.cam_from_world[i] for i in idx]
+        return [model.field_pose(dd.data.cam_from_world[i], float(t01[i])) for i in idx]
+
+    idx = {"train": train_idx, "heldout": val_idx}
+    out = {}
+    for kind in ("given", "fitted"):
+        sets = {name: (poses(kind, ii), [true[dd.data.names[i]] for i in ii]) for name, ii in idx.items()}
+        out[kind] = alignment_report(cam, sets["train"], sets)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--budget-s", type=float, default=300.0, help="training seconds per kind")
@@ -188,6 +218,7 @@ def main() -> None:
         truth = flight.with_name(flight.name + ".truth.json")
         poses = {"train": pose_errors(r.model, dd, train_idx, truth),
                  "heldout": pose_errors(r.model, dd, val_idx, truth),
+                 "alignment": frame_alignment(r.model, dd, train_idx, val_idx, truth),
                  "drift": r.model.pose_drift.summary() if r.model.pose_drift is not None else None}
         results[kind] = {"poses": poses, "psnr": ev["psnr"], "ssim": ev["ssim"], "box_psnr": ev["box_psnr"],
                          "bg_psnr": ev["bg_psnr"],
@@ -205,6 +236,12 @@ def main() -> None:
             print("  held-out pose error (median, raw / varying part): " + "; ".join(
                 f"{k} {h[k]['centre_raw_m']:.3f} / {h[k]['centre_varying_m']:.3f} m, "
                 f"{h[k]['rot_raw_deg']:.3f} / {h[k]['rot_varying_deg']:.3f} deg" for k in ("given", "fitted")),
+                flush=True)
+        if poses["alignment"]:
+            a = poses["alignment"]
+            print("  ground misregistration (px, median / mean; train, held-out): " + "; ".join(
+                f"{k} {a[k]['train']['median_px']:.2f} / {a[k]['train']['mean_px']:.2f}, "
+                f"{a[k]['heldout']['median_px']:.2f} / {a[k]['heldout']['mean_px']:.2f}" for k in ("given", "fitted")),
                 flush=True)
     payload = {"flight": str(flight), "frames": dd.n, "train_frames": len(train_idx), "val_frames": len(val_idx),
                "width": dd.data.camera.width, "height": dd.data.camera.height, "budget_s": args.budget_s,

@@ -73,6 +73,12 @@ CONFIGS = {
     # most of them but did not raise 50 m PSNR, and cost 1.1 dB held-out (session 13)
     "hash-occ32-topdown": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
                            "lambda_topdown": 5e-3},
+    # a footprint-aware (mip-mapped) background texture, 256² or 512² at its finest: what lies beyond the box at 50 m
+    # was seen only at grazing angles from 15 m (session 14)
+    "hash-occ32-bgmip256": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
+                            "background_resolution": 256, "background_mip": True},
+    "hash-occ32-bgmip512": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
+                            "background_resolution": 512, "background_mip": True},
     # the `fit` default (FitConfig) since session 10: 32 samples spread over the occupied cells, not the whole slab
     "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},

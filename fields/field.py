@@ -193,25 +193,90 @@ class Background(nn.Module):
     """Cheap colour for what lies beyond the scene box (no density, no floaters).
 
     Rays pointing below the horizon hit the ground plane ``z = ground_z``; their ground point is
-    contracted (mip-NeRF 360 style, ``xy / r`` scaled to ``2 - 1/|u|`` beyond ``radius_m``) and
-    looked up in a small RGB texture. Rays at or above the horizon get a learned sky colour.
+    contracted (mip-NeRF 360 style, ``xy / r`` scaled to ``2 - 1/|u|`` beyond ``radius_m``, ``xy`` ENU
+    metres about the world origin) and looked up in an RGB texture. Rays at or above the horizon get
+    a learned sky colour.
+
+    ``mip=True`` makes the lookup footprint-aware (a learned mip map): the texture's colours are
+    average-pooled into a pyramid, and each ray reads the level whose texel matches its pixel's
+    footprint on the ground (the longer axis of the footprint ellipse, foreshortened by the grazing
+    angle and scaled by the contraction), blending the two nearest levels. A grazing training ray
+    then teaches the area average it saw to a coarse level, shared by all the fine texels under it,
+    instead of one fine texel that a steeper view would read out of context. Without ``pixel_rad``
+    (radians per pixel) in :meth:`forward` the finest level is read.
     """
 
-    def __init__(self, ground_z: float, radius_m: float, resolution: int = 64):
+    def __init__(self, ground_z: float, radius_m: float, resolution: int = 64, mip: bool = False):
         super().__init__()
         self.ground_z = float(ground_z)
         self.radius_m = float(radius_m)
+        self.mip = bool(mip)
+        if mip and (resolution < 8 or resolution & (resolution - 1)):
+            raise ValueError(f"a mip-mapped background needs a power-of-two resolution >= 8, got {resolution}")
         self.texture = nn.Parameter(torch.zeros(1, 3, resolution, resolution))
         self.sky = nn.Parameter(torch.zeros(3))
 
-    def forward(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    def _ground(self, origins: torch.Tensor, dirs: torch.Tensor):
+        """Per ray: below the horizon (bool), distance to the ground (m along the unit ray, 0 if not
+        down), ground point xy (ENU m) and its contracted texture coordinate in [-1, 1]^2."""
         dz = dirs[:, 2]
         down = dz < -1e-6
         t = torch.where(down, (self.ground_z - origins[:, 2]) / torch.where(down, dz, -torch.ones_like(dz)),
                         torch.zeros_like(dz)).clamp_min(0.0)
-        u = (origins[:, :2] + t[:, None] * dirs[:, :2]) / self.radius_m
+        xy = origins[:, :2] + t[:, None] * dirs[:, :2]
+        u = xy / self.radius_m
         r = u.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-        u = torch.where(r <= 1, u, (2 - 1 / r) * u / r) / 2  # |u| < 1 after contraction
-        tex = nn.functional.grid_sample(self.texture, u.view(1, -1, 1, 2), align_corners=False,
-                                        padding_mode="border").view(3, -1).t()
-        return torch.where(down[:, None], torch.sigmoid(tex), torch.sigmoid(self.sky).expand_as(tex))
+        g = torch.where(r <= 1, u, (2 - 1 / r) * u / r) / 2  # |g| < 1 after contraction
+        return down, t, xy, g
+
+    def level_of_detail(self, origins: torch.Tensor, dirs: torch.Tensor, pixel_rad: float) -> torch.Tensor:
+        """Per ray, the (fractional) pyramid level whose texel spans the longer axis of the pixel's
+        ground footprint: 0 = the full-resolution texture, each level up halves the resolution."""
+        down, t, xy, _ = self._ground(origins, dirs)
+        short = t * float(pixel_rad)  # across the ray, metres
+        long = short / dirs[:, 2].abs().clamp_min(0.05)  # along the ray's ground track, foreshortened
+        r = (xy.norm(dim=-1) / self.radius_m).clamp_min(1e-9)
+        beyond = r > 1
+        # texture units (the full [-1, 1] span = 2) per metre, radially and tangentially
+        s_r = torch.where(beyond, 1 / (2 * r * r), torch.full_like(r, 0.5)) / self.radius_m
+        s_t = torch.where(beyond, (2 - 1 / r) / (2 * r), torch.full_like(r, 0.5)) / self.radius_m
+        track = dirs[:, :2] / dirs[:, :2].norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        radial = xy / xy.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        cos = (track * radial).sum(-1).abs().clamp(max=1.0)
+        sin = (1 - cos * cos).clamp_min(0.0).sqrt()
+        long_tex = long * torch.sqrt((cos * s_r) ** 2 + (sin * s_t) ** 2)
+        short_tex = short * torch.sqrt((sin * s_r) ** 2 + (cos * s_t) ** 2)
+        texel = 2.0 / self.texture.shape[-1]
+        lod = torch.log2(torch.maximum(long_tex, short_tex).clamp_min(1e-12) / texel)
+        levels = int(math.log2(self.texture.shape[-1])) - 2  # down to 4 x 4 texels
+        return torch.where(down, lod.clamp(0.0, float(levels)), torch.zeros_like(lod))
+
+    def forward(self, origins: torch.Tensor, dirs: torch.Tensor, pixel_rad: float | None = None) -> torch.Tensor:
+        """RGB (R, 3) in [0, 1] of R rays (world ENU origins and unit directions) that leave the
+        box; ``pixel_rad``: the camera's radians per pixel (used only by a mip-mapped texture)."""
+        down, _, _, g = self._ground(origins, dirs)
+        grid = g.view(1, -1, 1, 2)
+        if not self.mip:
+            tex = nn.functional.grid_sample(self.texture, grid, align_corners=False,
+                                            padding_mode="border").view(3, -1).t()
+            colour = torch.sigmoid(tex)
+        else:
+            level = torch.sigmoid(self.texture)
+            if pixel_rad is None:
+                colour = nn.functional.grid_sample(level, grid, align_corners=False,
+                                                   padding_mode="border").view(3, -1).t()
+            else:
+                lod = self.level_of_detail(origins, dirs, pixel_rad)
+                reads = []
+                for k in range(int(lod.max().ceil().item()) + 1):
+                    if k:
+                        level = nn.functional.avg_pool2d(level, 2)
+                    reads.append(nn.functional.grid_sample(level, grid, align_corners=False,
+                                                           padding_mode="border").view(3, -1).t())
+                reads = torch.stack(reads)  # (K, R, 3)
+                i0 = lod.floor().long().clamp(max=reads.shape[0] - 1)
+                i1 = (i0 + 1).clamp(max=reads.shape[0] - 1)
+                w = (lod - i0.to(lod.dtype))[:, None]
+                rows = torch.arange(lod.shape[0], device=lod.device)
+                colour = reads[i0, rows] * (1 - w) + reads[i1, rows] * w
+        return torch.where(down[:, None], colour, torch.sigmoid(self.sky).expand_as(colour))

@@ -30,8 +30,8 @@ class FieldViewRenderer:
         self.chunk = chunk
 
     def _render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, t_unix_us: int | None,
-                     with_mask: bool) -> dict:
-        return self.model.render_rays(origins, dirs, None, train=False, with_mask=with_mask)
+                     with_mask: bool, pixel_rad: float | None = None) -> dict:
+        return self.model.render_rays(origins, dirs, None, train=False, with_mask=with_mask, pixel_rad=pixel_rad)
 
     def field_pose(self, cam_from_world: np.ndarray, t_unix_us: int | None) -> np.ndarray:
         """The field-world pose of a *recorded* frame's telemetry pose (OpenCV ``cam_from_world``) taken
@@ -55,7 +55,8 @@ class FieldViewRenderer:
         d_t = torch.from_numpy(d.astype(np.float32)).to(dev)
         rgb, probs, depth = [], [], []
         for a in range(0, d_t.shape[0], self.chunk):
-            res = self._render_rays(o_t[a:a + self.chunk], d_t[a:a + self.chunk], t_unix_us, with_mask)
+            res = self._render_rays(o_t[a:a + self.chunk], d_t[a:a + self.chunk], t_unix_us, with_mask,
+                                    camera.pixel_rad)
             rgb.append(res["rgb"].float().cpu())
             depth.append(res["depth"].float().reshape(-1).cpu())
             if with_mask:
@@ -75,7 +76,7 @@ class DynamicViewRenderer(FieldViewRenderer):
     """A dynamic field (:class:`fields.dynamic_model.DynamicModel`) rendered at the pose's time."""
 
     def _render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, t_unix_us: int | None,
-                     with_mask: bool) -> dict:
+                     with_mask: bool, pixel_rad: float | None = None) -> dict:
         times01 = torch.full((origins.shape[0],), self.model.time01(t_unix_us), device=origins.device)
         return self.model.render_rays(origins, dirs, times01, train=False, with_mask=with_mask)
 

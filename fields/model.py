@@ -45,11 +45,11 @@ class StaticModel(nn.Module):
     """Field, background and sampler; :meth:`render_rays` is the only entry point for rendering."""
 
     def __init__(self, field_config: FieldConfig, sampler_config: SamplerConfig, ground_z: float,
-                 background_radius_m: float, background_resolution: int = 64):
+                 background_radius_m: float, background_resolution: int = 64, background_mip: bool = False):
         super().__init__()
         self.field_config, self.sampler_config = field_config, sampler_config
         self.field = StaticField(field_config)
-        self.background = Background(ground_z, background_radius_m, background_resolution)
+        self.background = Background(ground_z, background_radius_m, background_resolution, background_mip)
         self.sampler = make_sampler(sampler_config)
         self.skip_grid: torch.Tensor | None = None
 
@@ -58,7 +58,7 @@ class StaticModel(nn.Module):
         return {"field": self.field_config.to_json(), "sampler": {**asdict(self.sampler_config),
                                                                   "grid_shape": list(self.sampler_config.grid_shape)},
                 "ground_z": self.background.ground_z, "background_radius_m": self.background.radius_m,
-                "background_resolution": self.background.texture.shape[-1]}
+                "background_resolution": self.background.texture.shape[-1], "background_mip": self.background.mip}
 
     @classmethod
     def from_description(cls, d: dict) -> StaticModel:
@@ -67,7 +67,7 @@ class StaticModel(nn.Module):
         if "skip_threshold" not in s:  # checkpoints from before the skip grid: render exactly as then
             s["skip_threshold"], s["min_weight"] = 0.0, 0.0
         return cls(FieldConfig.from_json(d["field"]), SamplerConfig(**s), d["ground_z"], d["background_radius_m"],
-                   d.get("background_resolution", 64))
+                   d.get("background_resolution", 64), d.get("background_mip", False))
 
     def param_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
@@ -171,7 +171,8 @@ class StaticModel(nn.Module):
         return self._live_samples(w, pts, geo)
 
     def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, image_idx: torch.Tensor | None = None,
-                    train: bool = False, with_mask: bool = True, generator=None) -> dict:
+                    train: bool = False, with_mask: bool = True, generator=None,
+                    pixel_rad: float | None = None) -> dict:
         """Render R rays: ``rgb`` (R,3), ``acc`` (R,1), ``depth`` (R,1), ``mask_probs`` (R,C+1),
         and for the losses ``weights`` (R,S), ``sample_z`` (R,S) (the samples' ENU height, m) and
         ``t_norm`` (R,S+1) (edges scaled to [0,1] per ray).
@@ -194,7 +195,7 @@ class StaticModel(nn.Module):
                 0, live, f.color(geo[live], d_rep[live], None if i_rep is None else i_rep[live]))
         else:
             rgb = f.color(geo, d_rep, i_rep)
-        bg = self.background(origins, dirs)
+        bg = self.background(origins, dirs, pixel_rad)
         res = {"rgb": composite(w, rgb.view(r, s, 3), bg), "acc": opacity(w),
                "depth": expected_depth(w, mid, edges[:, -1]), "weights": w, "sample_z": pts.view(r, s, 3)[..., 2]}
         res["t_norm"] = _normalised_edges(edges)
@@ -227,7 +228,8 @@ class StaticModel(nn.Module):
         for a in range(0, d.shape[0], chunk):
             idx = None if image_idx is None else torch.full((min(chunk, d.shape[0] - a),), image_idx,
                                                             dtype=torch.long, device=dev)
-            res = self.render_rays(o[a:a + chunk], d[a:a + chunk], idx, train=False, with_mask=with_mask)
+            res = self.render_rays(o[a:a + chunk], d[a:a + chunk], idx, train=False, with_mask=with_mask,
+                                   pixel_rad=camera.pixel_rad)
             outs["rgb"].append(res["rgb"])
             outs["acc"].append(res["acc"][:, 0])
             outs["depth"].append(res["depth"][:, 0])

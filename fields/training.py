@@ -121,6 +121,9 @@ class FitConfig:
     cell_factor: float = 1.0
     #: texels per side of the background ground texture (beyond the slab; contracted, inner disc = half)
     background_resolution: int = 64
+    #: footprint-aware background lookup (a learned mip map, :class:`fields.field.Background`); needs a
+    #: power-of-two ``background_resolution``
+    background_mip: bool = False
 
 
 @dataclass
@@ -165,7 +168,8 @@ def build_model(data: FlightData, train_idx: list[int], cfg: FitConfig, flight: 
     grid = tuple(int(min(256, max(8, math.ceil(e / c)))) for e, c in zip(ext, cfg.occupancy_cell_m, strict=True))
     sc = SamplerConfig(cfg.sampler, cfg.n_samples, 96, grid)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
-    return StaticModel(fc, sc, bounds.ground_z, radius, cfg.background_resolution), bounds, sizing
+    return (StaticModel(fc, sc, bounds.ground_z, radius, cfg.background_resolution, cfg.background_mip), bounds,
+            sizing)
 
 
 def _mask_grid(bounds: SceneBounds, cfg: FitConfig, geo_mb: float, sizing: Sizing) -> tuple[list, int]:
@@ -360,7 +364,8 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         o, d = bank.rays(fi, pi)
         target = images[fi, pi].float() / 255.0
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
-            res = model.render_rays(o, d, fi, train=True, generator=gen, with_mask=joint_mask)
+            res = model.render_rays(o, d, fi, train=True, generator=gen, with_mask=joint_mask,
+                                    pixel_rad=data.camera.pixel_rad)
             loss_rgb = torch.mean((res["rgb"] - target) ** 2)
             loss = loss_rgb
             if cfg.lambda_dist > 0:

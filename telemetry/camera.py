@@ -198,6 +198,11 @@ class Camera:
         dirs = self.unproject(uv) @ R  # (R.T @ d) for row vectors
         return origin, dirs
 
+    @property
+    def pixel_rad(self) -> float:
+        """The angle one pixel subtends at the image centre, radians (1 / the mean focal length in px)."""
+        return 2.0 / (self.fx + self.fy)
+
     def ground_sample_distance(self, range_m: float) -> float:
         """Metres per pixel at ``range_m`` along the optical axis (mean of fx, fy)."""
         return range_m * 2.0 / (self.fx + self.fy)
