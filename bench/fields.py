@@ -79,6 +79,12 @@ CONFIGS = {
                             "background_resolution": 256, "background_mip": True},
     "hash-occ32-bgmip512": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
                             "background_resolution": 512, "background_mip": True},
+    # a box 8 m wider on each side (margin 10 m): the ring the 50 m views see beyond the default box, as geometry
+    # instead of the flat background texture (session 14)
+    "hash-occ32-margin10": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
+                            "box_margin_m": 10.0},
+    "hash-occ32-margin20": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
+                            "box_margin_m": 20.0},
     # the `fit` default (FitConfig) since session 10: 32 samples spread over the occupied cells, not the whole slab
     "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},

@@ -136,6 +136,9 @@ def main() -> None:
     ap.add_argument("--longest", action="store_true",
                     help="footprints by their long axis (foreshortened along the view), not their area: a "
                          "stricter oracle")
+    ap.add_argument("--regions-from", type=Path, default=None,
+                    help="take the box that splits the regions from this saved field instead of --model's "
+                         "(to compare fields whose boxes differ on the same pixels)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
 
@@ -154,6 +157,9 @@ def main() -> None:
         model, _ = load_checkpoint(args.model, "cpu")
         model.eval()
         lo, hi = model.field.lo.numpy(), model.field.hi.numpy()
+        if args.regions_from:
+            ref, _ = load_checkpoint(args.regions_from, "cpu")
+            lo, hi = ref.field.lo.numpy(), ref.field.hi.numpy()
     world = None
     if args.occlusion:
         from sim.world import make_world

@@ -119,6 +119,8 @@ class FitConfig:
     log_every_s: float = 10.0
     #: cell size multiplier over the finest GSD (1 = as fine as the data)
     cell_factor: float = 1.0
+    #: metres added around the 2nd-98th percentile of the training rays' ground hits (:func:`fields.scene.scene_bounds`)
+    box_margin_m: float = 2.0
     #: texels per side of the background ground texture (beyond the slab; contracted, inner disc = half)
     background_resolution: int = 64
     #: footprint-aware background lookup (a learned mip map, :class:`fields.field.Background`); needs a
@@ -154,7 +156,7 @@ def configure_threads(threads: int | None) -> None:
 def build_model(data: FlightData, train_idx: list[int], cfg: FitConfig, flight: Path | None) -> tuple:
     """Bounds, sizing and a fresh model for the training frames."""
     Ts = [data.cam_from_world[i] for i in train_idx]
-    bounds = scene_bounds(flight, data.camera, Ts)
+    bounds = scene_bounds(flight, data.camera, Ts, margin_m=cfg.box_margin_m)
     geo_mb = cfg.budget_mb * (1.0 - MASK_BUDGET_SHARE if cfg.mask_encoding == "grid" else 1.0)
     sizing = size_model(bounds, cfg.encoding, geo_mb, cfg.features, cell_factor=cfg.cell_factor)
     mask_res, mask_log2 = _mask_grid(bounds, cfg, geo_mb, sizing)
