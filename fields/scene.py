@@ -8,9 +8,12 @@ Bounds (world ENU metres): a *ground slab* box.
 - Slab top: the 99.5th percentile of point heights above the ground (the tallest object) + 10 %,
   else the fallback ``0.7 x`` the lowest camera height above the ground (a camera sees down onto
   what it overflies; capped at 30 m).
-- Horizontal extent: where training rays (a sparse pixel grid of every frame) hit the ground,
-  2nd-98th percentiles, plus a 2 m margin, limited to ``max_range_factor x`` the camera height so
-  near-horizontal rays do not stretch the box to the horizon. Beyond it: the cheap background.
+- Horizontal extent: where training rays (a sparse pixel grid of every frame) hit the ground, limited
+  to ``max_range_factor x`` the camera height so near-horizontal rays do not stretch the box to the
+  horizon; the ``100 - coverage_pct`` to ``coverage_pct`` percentiles of those hits, plus a margin
+  (2 m). The static fit takes every hit (``coverage_pct=100``: what a higher view sees beyond the
+  trimmed box was seen by the data and is modelled as geometry); the dynamic fit the 2nd-98th
+  percentiles. Beyond the box: the cheap background.
 
 Sizing: the finest cell is the finest ground sample distance of the training frames (5th
 percentile of metres per pixel where the rays hit the ground: no finer than the data), the
@@ -120,8 +123,13 @@ def ground_hits(camera: Camera, cam_from_world: list[np.ndarray], ground_z: floa
 
 
 def scene_bounds(flight: Path | None, camera: Camera, cam_from_world: list[np.ndarray],
-                 max_range_factor: float = 4.0, margin_m: float = 2.0) -> SceneBounds:
-    """The ground slab for a flight (see the module docstring)."""
+                 max_range_factor: float = 4.0, margin_m: float = 2.0,
+                 coverage_pct: float = 98.0) -> SceneBounds:
+    """The ground slab for a flight (see the module docstring). Horizontally, the box spans the
+    ``100 - coverage_pct`` to ``coverage_pct`` percentiles of the training rays' ground hits (within
+    reach) plus ``margin_m`` metres; ``coverage_pct=100`` takes every ground point a training ray saw."""
+    if not 50.0 < coverage_pct <= 100.0:
+        raise ValueError(f"coverage_pct must be in (50, 100], got {coverage_pct}")
     notes = []
     points = find_sparse_points(Path(flight)) if flight is not None else None
     centres = np.array([-T[:3, :3].T @ T[:3, 3] for T in cam_from_world])
@@ -147,10 +155,11 @@ def scene_bounds(flight: Path | None, camera: Camera, cam_from_world: list[np.nd
     c = centres[:, :2].mean(0)
     near = np.linalg.norm(hits - c, axis=1) <= reach + np.linalg.norm(centres[:, :2] - c, axis=1).max()
     hits_k = hits[near] if near.sum() > 10 else hits
-    lo_xy = np.percentile(hits_k, 2, axis=0) - margin_m
-    hi_xy = np.percentile(hits_k, 98, axis=0) + margin_m
+    lo_xy = np.percentile(hits_k, 100.0 - coverage_pct, axis=0) - margin_m
+    hi_xy = np.percentile(hits_k, coverage_pct, axis=0) + margin_m
     bottom = ground - max(0.5, 0.05 * (top - ground))
-    notes.append(f"xy extent from {len(hits_k)} ground hits of training rays (2-98th pct + {margin_m} m)")
+    notes.append(f"xy extent from {len(hits_k)} ground hits of training rays ({100 - coverage_pct:g}-"
+                 f"{coverage_pct:g}th pct + {margin_m} m)")
     return SceneBounds((float(lo_xy[0]), float(lo_xy[1]), bottom), (float(hi_xy[0]), float(hi_xy[1]), top),
                        ground, source, float(np.percentile(gsd, 5)), float(np.median(gsd)), notes)
 

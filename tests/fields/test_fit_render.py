@@ -52,6 +52,24 @@ def test_bounds_and_sizing_from_telemetry(tiny_flight):
     assert p.resolutions[0][0] < p.resolutions[-1][0]
 
 
+def test_bounds_coverage_takes_every_ground_hit(tiny_flight):
+    """coverage_pct=100 spans every ground point a training ray saw (+ the margin); 98 trims the tails."""
+    from fields.scene import ground_hits
+
+    d = load_flight(tiny_flight)
+    hits, _, _ = ground_hits(d.camera, d.cam_from_world, 0.0)
+    full = scene_bounds(tiny_flight, d.camera, d.cam_from_world, coverage_pct=100.0, margin_m=0.5)
+    trimmed = scene_bounds(tiny_flight, d.camera, d.cam_from_world, coverage_pct=98.0, margin_m=0.5)
+    # the tiny flight's rays stay within reach, so every hit counts
+    np.testing.assert_allclose(full.lo[:2], hits.min(0) - 0.5)
+    np.testing.assert_allclose(full.hi[:2], hits.max(0) + 0.5)
+    assert all(f <= t for f, t in zip(full.lo[:2], trimmed.lo[:2], strict=True))
+    assert all(f >= t for f, t in zip(full.hi[:2], trimmed.hi[:2], strict=True))
+    for bad in (50.0, 100.5):
+        with pytest.raises(ValueError, match="coverage_pct"):
+            scene_bounds(tiny_flight, d.camera, d.cam_from_world, coverage_pct=bad)
+
+
 def test_bounds_from_sparse_points(tmp_path, tiny_flight):
     flight = tmp_path / "f"
     shutil.copytree(tiny_flight, flight)
