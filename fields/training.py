@@ -124,8 +124,9 @@ class FitConfig:
     #: the box spans this percentile of the training rays' ground hits (and 100 minus it) before the margin;
     #: 100: every ground point a training ray saw within reach. Against 98 (the default until session 15; the box
     #: then ended where the 50 m views still see trees and buildings, drawn on the flat background texture),
-    #: 100 gained +1.0 dB at 35 m and +1.1 dB at 50 m at 300 s, lost 0.5-0.9 dB under the orbit (the same hash
-    #: table over 2.7x the area), level held-out; 17.2 MB (bench/RESULTS.md, static session 15)
+    #: 100 gained +0.9-1.4 dB at 35 m and +1.0-1.3 dB at 50 m at 300 s (two runs against four), lost up to 0.7 dB
+    #: under the orbit and 0.02-0.04 box IoU (the same hash table over 2.7x the area), level held-out; 17.2 MB
+    #: against 15.8 (bench/RESULTS.md, static session 15)
     box_coverage_pct: float = 100.0
     #: texels per side of the background ground texture (beyond the slab; contracted, inner disc = half)
     background_resolution: int = 64
