@@ -85,14 +85,12 @@ CONFIGS = {
                             "box_coverage_pct": 98.0, "box_margin_m": 10.0},
     "hash-occ32-margin20": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
                             "box_coverage_pct": 98.0, "box_margin_m": 20.0},
-    # the box around every ground point a training ray saw (within reach), + 2 m: the default since session 15
-    "hash-occ32-allhits": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
-                           "box_coverage_pct": 100.0},
     # the default box until session 15: the 2nd-98th percentile of the ground hits + 2 m
     "hash-occ32-box98": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
                          "box_coverage_pct": 98.0},
     # the `fit` default (FitConfig) since session 10: 32 samples spread over the occupied cells, not the whole slab;
-    # its box spans every ground hit since session 15 (= hash-occ32-allhits; before: hash-occ32-box98)
+    # its box spans every ground hit since session 15 (measured as `hash-occ32-allhits` before the default
+    # changed; the old box is hash-occ32-box98)
     "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
     "planes-occ": {"encoding": "planes", "sampler": "occupancy", "n_samples": 24},
