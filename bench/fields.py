@@ -92,6 +92,10 @@ CONFIGS = {
     # its box spans every ground hit since session 15 (measured as `hash-occ32-allhits` before the default
     # changed; the old box is hash-occ32-box98)
     "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
+    # the default with each hash level damped where the training frames saw the ground coarser than its cells
+    # (fields.footprint; session 16)
+    "hash-occ32-lvlfp": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
+                         "level_footprint": True},
     "planes-strat": {"encoding": "planes", "sampler": "stratified", "n_samples": 32},
     "planes-occ": {"encoding": "planes", "sampler": "occupancy", "n_samples": 24},
 }

@@ -13,6 +13,10 @@ weights), so image and mask come from one geometry (this replaces the paper's se
 while the mask has capacity of its own (measured in bench/RESULTS.md: the head on geometry
 features alone did not learn the people).
 
+Optionally (``FieldConfig.footprint_cells``) each hash level's features are damped where the training
+frames saw the ground coarser than the level's cells (:mod:`fields.footprint`), a function of the
+point's position only.
+
 Points are world ENU metres; the field maps them into its scene box (``aabb`` lo, hi) to [0, 1].
 """
 
@@ -21,10 +25,12 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field
 
+import numpy as np
 import torch
 from torch import nn
 
 from fields.encodings import make_encoding
+from fields.footprint import level_weights
 
 
 class _TruncExp(torch.autograd.Function):
@@ -83,6 +89,10 @@ class FieldConfig:
     #: mask ray has reached yet stays background. None: torch's default init, ~uniform over the C + 1
     #: outputs, i.e. every untrained place starts as foreground 0.75 (bench/RESULTS.md, Session 3)
     mask_init_background: float | None = None
+    #: (cx, cy) cells of a map of the finest training footprint over the box's xy that damps each hash
+    #: level where the data was coarser than its cells (:mod:`fields.footprint`); None: every level at
+    #: full weight everywhere. The map itself is a buffer (in the checkpoint), set by ``set_footprint``
+    footprint_cells: tuple[int, int] | None = None
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -98,6 +108,8 @@ class FieldConfig:
         if "mask_resolutions" in d:
             d["mask_resolutions"] = [tuple(r) for r in d["mask_resolutions"]]
         d["aabb_lo"], d["aabb_hi"] = tuple(d["aabb_lo"]), tuple(d["aabb_hi"])
+        if d.get("footprint_cells") is not None:
+            d["footprint_cells"] = tuple(d["footprint_cells"])
         return cls(**d)
 
 
@@ -141,16 +153,47 @@ class StaticField(nn.Module):
         self.mask_head = nn.Sequential(nn.Linear(mask_in, 32), nn.ReLU(), nn.Linear(32, config.n_classes + 1))
         if config.mask_init_background is not None:
             init_background_bias(self.mask_head[-1], config.mask_init_background)
+        log_fp = cell_m = None
+        if config.footprint_cells is not None:
+            if config.encoding != "hash":
+                raise ValueError("footprint_cells damps hash-grid levels: it needs encoding='hash'")
+            cx, cy = config.footprint_cells
+            ext = [h - lo for lo, h in zip(config.aabb_lo, config.aabb_hi, strict=True)]
+            # a level's horizontal cell: geometric mean of its x and y cell sizes, metres
+            cell = [math.sqrt(ext[0] / r[0] * ext[1] / r[1]) for r in config.resolutions]
+            log_fp, cell_m = torch.zeros(cy, cx), torch.tensor(cell, dtype=torch.float32)
+        self.register_buffer("log_footprint", log_fp)  # None (off) is not stored in the checkpoint
+        self.register_buffer("level_cell_m", cell_m, persistent=False)
 
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         """World ENU metres -> [0, 1]^3 of the scene box (not clamped)."""
         return (points - self.lo) / (self.hi - self.lo)
 
+    def set_footprint(self, footprint_m) -> None:
+        """Store the finest training footprint (cy, cx) metres over the box's xy
+        (:func:`fields.footprint.footprint_map`); needs ``FieldConfig.footprint_cells``."""
+        if self.log_footprint is None:
+            raise ValueError("this field has no footprint map (FieldConfig.footprint_cells is None)")
+        fp = torch.as_tensor(np.asarray(footprint_m), dtype=torch.float32)
+        if fp.shape != self.log_footprint.shape or not torch.isfinite(fp).all() or (fp <= 0).any():
+            raise ValueError(f"footprint map must be {tuple(self.log_footprint.shape)}, finite and > 0")
+        self.log_footprint.copy_(fp.log())
+
+    def encode(self, x01: torch.Tensor) -> torch.Tensor:
+        """Geometry features of the encoding at box-normalised points (N, 3), each hash level damped
+        where the data was coarser than its cells when the field has a footprint map."""
+        feats = self.encoding(x01)
+        if self.log_footprint is None:
+            return feats
+        w = level_weights(x01[:, :2], self.log_footprint, self.level_cell_m)  # (N, L)
+        n, n_levels = w.shape
+        return (feats.view(n, n_levels, -1) * w[:, :, None].to(feats.dtype)).view(n, -1)
+
     def geometry(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density (N,) in 1/m (0 outside the box) and geometry features (N, G)."""
         x01 = self.normalise(points)
         inside = ((x01 >= 0) & (x01 <= 1)).all(dim=-1)
-        h = self.geo_mlp(self.encoding(x01)).float()
+        h = self.geo_mlp(self.encode(x01)).float()
         sigma = trunc_exp(h[:, 0] + self.config.density_bias) * inside
         return sigma, h[:, 1:]
 

@@ -33,6 +33,7 @@ import torch
 from fields.data import FlightData, RayBank
 from fields.evaluation import label_boxes, match_boxes, psnr, ssim
 from fields.field import FieldConfig
+from fields.footprint import footprint_map
 from fields.mask_boxes import BoxRules, boxes_from_probabilities
 from fields.model import SamplerConfig, StaticModel, topdown_rays
 from fields.scene import SceneBounds, Sizing, hash_params, scene_bounds, size_model
@@ -135,6 +136,11 @@ class FitConfig:
     #: texture outside the box at 50 m (300 s; bench/RESULTS.md, static session 14): the error there is the
     #: parallax of trees and buildings on a flat texture, not its resolution. Off
     background_mip: bool = False
+    #: damp each hash level where the training frames saw the ground coarser than its cells (a map of
+    #: the finest footprint over ``footprint_cells`` x ``footprint_cells`` xy cells of the box;
+    #: :mod:`fields.footprint`); False: every level at full weight everywhere
+    level_footprint: bool = False
+    footprint_cells: int = 64
 
 
 @dataclass
@@ -175,13 +181,20 @@ def build_model(data: FlightData, train_idx: list[int], cfg: FitConfig, flight: 
                      hidden=cfg.hidden, n_images=data.n, appearance_dim=cfg.appearance_dim,
                      view_dependent=cfg.view_dependent, n_classes=len(data.classes),
                      mask_encoding=cfg.mask_encoding, mask_resolutions=mask_res, mask_log2_table=mask_log2,
-                     mask_init_background=cfg.mask_init_background)
+                     mask_init_background=cfg.mask_init_background,
+                     footprint_cells=(cfg.footprint_cells,) * 2 if cfg.level_footprint else None)
     ext = np.asarray(bounds.extent)
     grid = tuple(int(min(256, max(8, math.ceil(e / c)))) for e, c in zip(ext, cfg.occupancy_cell_m, strict=True))
     sc = SamplerConfig(cfg.sampler, cfg.n_samples, 96, grid)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
-    return (StaticModel(fc, sc, bounds.ground_z, radius, cfg.background_resolution, cfg.background_mip), bounds,
-            sizing)
+    model = StaticModel(fc, sc, bounds.ground_z, radius, cfg.background_resolution, cfg.background_mip)
+    if cfg.level_footprint:
+        fp = footprint_map(data.camera, Ts, bounds.lo[:2], bounds.hi[:2], bounds.ground_z, fc.footprint_cells)
+        model.field.set_footprint(fp)
+        sizing.reasoning.append(f"level footprint map {fc.footprint_cells[0]}x{fc.footprint_cells[1]} cells: finest "
+                                f"footprint {fp.min() * 100:.1f} cm (median {np.median(fp) * 100:.1f}, max "
+                                f"{fp.max() * 100:.1f}); levels finer than the data there are damped")
+    return model, bounds, sizing
 
 
 def _mask_grid(bounds: SceneBounds, cfg: FitConfig, geo_mb: float, sizing: Sizing) -> tuple[list, int]:
