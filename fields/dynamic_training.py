@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from fields.dynamic_data import DynamicFlightData
 from fields.dynamic_model import DynamicModel, make_field_config, plane_sizing
 from fields.evaluation import label_boxes, match_boxes, psnr, ssim
-from fields.kplanes import cosine_separation
+from fields.kplanes import coarse_to_fine_weights, cosine_separation
 from fields.mask_boxes import boxes_from_probabilities
 from fields.model import SamplerConfig
 from fields.pose_drift import knot_count
@@ -123,6 +123,9 @@ class DynamicFitConfig:
     #: stock 26.24 -> 26.40; on 80 frames extended 27.41 -> 27.67, stock 25.51 -> 25.40. Off: it leaves
     #: extended below stock on the long flight (bench/RESULTS.md, Table III session 13)
     pose_from_background: bool = False
+    #: coarse-to-fine: the finer plane scales fade in over this share of training (BARF's schedule,
+    #: :func:`fields.kplanes.coarse_to_fine_weights`), both kinds alike; 0: every scale at full weight
+    coarse_to_fine: float = 0.0
     checkpoint_every_s: float = 60.0
     log_every_s: float = 10.0
 
@@ -282,6 +285,8 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     def progress() -> float:
         return schedule_progress(step, cfg.iters, train_s, cfg.budget_s)
 
+    enc = model.field.encoding
+
     last_log = last_ckpt = 0.0
     interactive = sys.stderr.isatty()
     t_mark = time.perf_counter()
@@ -291,6 +296,8 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         lr = cfg.lr * decay
         for g in optim.param_groups:
             g["lr"] = g["base_lr"] * decay
+        if cfg.coarse_to_fine > 0:
+            enc.scale_weights.copy_(coarse_to_fine_weights(enc.n_scales, progress(), cfg.coarse_to_fine))
         fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays - n_box,), device=dev, generator=gen)]
         pi = torch.randint(hw, (cfg.batch_rays - n_box,), device=dev, generator=gen)
         if n_box:
@@ -349,6 +356,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             t_mark = time.perf_counter()
     if interactive:
         print(file=sys.stderr)
+    enc.scale_weights.fill_(1.0)  # a budget cut short mid-schedule still renders with every scale
     model.eval()
     if ckpt:
         save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))

@@ -94,6 +94,26 @@ def _dynamic_features(dyn: torch.Tensor, times: torch.Tensor | None, p: torch.Te
     return dyn if times is None else dyn * (1.0 + p * (times - 1.0))
 
 
+def coarse_to_fine_weights(n_scales: int, progress: float, until: float) -> torch.Tensor:
+    """Per-scale feature weights (n_scales,) at ``progress`` in [0, 1] of training, as BARF fades in
+    positional-encoding bands: the coarsest scale always 1; scale ``s >= 1`` rises from 0 to 1 along
+    ``(1 - cos(pi * clamp(b - s + 1, 0, 1))) / 2`` with ``b = (n_scales - 1) * progress / until``, so the
+    finest scale is at full weight from ``progress = until`` on. ``until <= 0``: all ones (off).
+
+    While a finer scale is faded out it receives (almost) no colour gradient: the field and the learned
+    pose corrections first agree on the coarse scene, where a few decimetres of pose error are a fraction
+    of a cell, before the fine planes can fit each frame's misregistration.
+    """
+    if until <= 0 or n_scales <= 1:
+        return torch.ones(max(n_scales, 0))
+    b = (n_scales - 1) * min(max(progress, 0.0), 1.0) / until
+    s = torch.arange(n_scales, dtype=torch.float32)
+    ramp = (b - s + 1.0).clamp(0.0, 1.0)
+    w = 0.5 * (1.0 - torch.cos(torch.pi * ramp))
+    w[0] = 1.0
+    return w
+
+
 def sample_plane_cn(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Bilinear features (C, N), contiguous, of ``plane`` (1, C, Rv, Ru) at ``u, v`` in [0, 1].
 
@@ -190,9 +210,23 @@ class KPlanesEncoding(nn.Module):
                         p[:, d:] = 0.0  # mask logit 0 = undecided
                 self.dynamic_planes.append(p)
 
+        # coarse-to-fine (:func:`coarse_to_fine_weights`): each scale's colour features are multiplied by
+        # its weight; all ones (the default, and after training) leave the encoding as it is
+        self.register_buffer("scale_weights", torch.ones(len(config.multipliers)), persistent=False)
+
     @property
     def n_scales(self) -> int:
         return len(self.config.multipliers)
+
+    def _weighted(self, out: dict) -> dict:
+        """``out`` with each scale's feature columns times its ``scale_weights`` (mask columns as they are)."""
+        if bool((self.scale_weights == 1).all()):
+            return out
+        per_scale = self.config.features * (2 if self.config.extended else 1)
+        w = self.scale_weights.repeat_interleave(per_scale)
+        n_mask = out["features"].shape[1] - w.numel()
+        w = torch.cat([w, w.new_ones(n_mask)]).to(out["features"].dtype)
+        return {**out, "features": out["features"] * w}
 
     @property
     def out_dim(self) -> int:
@@ -224,12 +258,12 @@ class KPlanesEncoding(nn.Module):
         coords = torch.cat([x, t[:, None]], dim=-1)
         if (self.split_hard_gate and self.config.extended and dynamic_gate is not None and torch.is_grad_enabled()
                 and bool(((dynamic_gate == 0) | (dynamic_gate == 1)).all())):
-            return self._forward_split(coords, dynamic_gate.reshape(-1) > 0.5, space_points)
+            return self._weighted(self._forward_split(coords, dynamic_gate.reshape(-1) > 0.5, space_points))
         out = self._forward_gated(coords, dynamic_gate)
         if self.config.extended and space_points is not None:
             out["static_space"] = [f[:space_points] for f in out["static_space"]]
             out["dynamic_space"] = [f[:space_points] for f in out["dynamic_space"]]
-        return out
+        return self._weighted(out)
 
     #: use :meth:`_forward_split` for hard gates (False: always :meth:`_forward_gated`, the reference)
     split_hard_gate = True

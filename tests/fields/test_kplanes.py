@@ -175,3 +175,34 @@ def test_soft_gates_and_inference_take_the_gated_path():
         inference = enc(x, t, dynamic_gate=torch.ones(10))
     assert torch.allclose(soft["features"], inference["features"])
     assert soft["static_space"][0].shape == (10, 3)
+
+
+def test_coarse_to_fine_weights_hand_values():
+    from fields.kplanes import coarse_to_fine_weights
+
+    assert torch.equal(coarse_to_fine_weights(3, 0.0, 0.0), torch.ones(3))  # off
+    assert torch.allclose(coarse_to_fine_weights(3, 0.0, 0.4), torch.tensor([1.0, 0.0, 0.0]))
+    # b = 2 * 0.1 / 0.4 = 0.5: scale 1 half way up the cosine ramp, scale 2 not started
+    assert torch.allclose(coarse_to_fine_weights(3, 0.1, 0.4), torch.tensor([1.0, 0.5, 0.0]), atol=1e-6)
+    assert torch.allclose(coarse_to_fine_weights(3, 0.3, 0.4), torch.tensor([1.0, 1.0, 0.5]), atol=1e-6)
+    assert torch.equal(coarse_to_fine_weights(3, 0.4, 0.4), torch.ones(3))
+    assert torch.equal(coarse_to_fine_weights(3, 1.5, 0.4), torch.ones(3))  # progress past the end
+
+
+@pytest.mark.parametrize("extended", [False, True])
+def test_a_faded_out_scale_gives_zero_features_and_no_gradient_to_its_planes(extended):
+    torch.manual_seed(0)
+    enc = KPlanesEncoding(KPlanesConfig(base_resolution=(4, 4, 2), multipliers=(1, 2), time_resolution=3,
+                                        features=4, extended=extended))
+    x, t = torch.rand(50, 3), torch.rand(50)
+    full = enc(x, t)["features"].detach()
+    enc.scale_weights.copy_(torch.tensor([1.0, 0.0]))
+    out = enc(x, t)["features"]
+    per_scale = 4 * (2 if extended else 1)
+    assert torch.equal(out[:, :per_scale], full[:, :per_scale])
+    assert (out[:, per_scale:2 * per_scale] == 0).all()
+    assert torch.equal(out[:, 2 * per_scale:], full[:, 2 * per_scale:])  # mask channels untouched
+    out[:, :2 * per_scale].sum().backward()
+    fine = enc.dynamic_planes[6:9] if not extended else list(enc.static_planes[3:]) + list(enc.dynamic_planes[6:9])
+    assert all(p.grad is None or (p.grad == 0).all() for p in fine)
+    assert enc.dynamic_planes[0].grad is not None and enc.dynamic_planes[0].grad.abs().sum() > 0
