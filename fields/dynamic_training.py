@@ -124,7 +124,9 @@ class DynamicFitConfig:
     #: extended below stock on the long flight (bench/RESULTS.md, Table III session 13)
     pose_from_background: bool = False
     #: coarse-to-fine: the finer plane scales fade in over this share of training (BARF's schedule,
-    #: :func:`fields.kplanes.coarse_to_fine_weights`), both kinds alike; 0: every scale at full weight
+    #: :func:`fields.kplanes.coarse_to_fine_weights`), both kinds alike; 0: every scale at full weight. At 0.3,
+    #: extended on the 300-frame telemetry flight, 900 s: seed 0 23.68 dB (27.44 without), seed 1 27.20 (25.64):
+    #: it moves which seed's pose knots fail to line the frames up, no cure (bench/RESULTS.md, Table III session 16)
     coarse_to_fine: float = 0.0
     checkpoint_every_s: float = 60.0
     log_every_s: float = 10.0
