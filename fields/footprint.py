@@ -28,6 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from fields.scene import frame_ground_hits
 from telemetry.camera import Camera
 
 #: sqrt(12) / sqrt(8): cell size over footprint width -> the erf argument (Zip-NeRF's downweighting)
@@ -52,14 +53,10 @@ def footprint_map(camera: Camera, cam_from_world: list[np.ndarray], lo_xy, hi_xy
     f = 0.5 * (camera.fx + camera.fy)
     best = np.full(cy * cx, np.inf)
     for T in cam_from_world:
-        o, d = camera.rays_world(np.asarray(T, np.float64), uv)
-        down = d[:, 2] < -1e-6
-        t = (ground_z - o[2]) / np.where(down, d[:, 2], -1.0)
-        ok = down & (t > 0)
-        xy = o[:2] + t[ok, None] * d[ok, :2]
+        xy, t, _, _ = frame_ground_hits(camera, T, uv, ground_z)
         ij = np.floor((xy - lo) / (hi - lo) * (cx, cy)).astype(np.int64)
         inside = (ij >= 0).all(1) & (ij[:, 0] < cx) & (ij[:, 1] < cy)
-        np.minimum.at(best, ij[inside, 1] * cx + ij[inside, 0], t[ok][inside] / f)
+        np.minimum.at(best, ij[inside, 1] * cx + ij[inside, 0], t[inside] / f)
     seen = np.isfinite(best)
     if not seen.any():
         raise ValueError("no training ray reaches the ground inside the box")

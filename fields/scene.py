@@ -105,20 +105,28 @@ def _read_ply_xyz(path: Path) -> np.ndarray | None:
     return arr[:, [names.index("x"), names.index("y"), names.index("z")]]
 
 
+def frame_ground_hits(camera: Camera, cam_from_world: np.ndarray, uv: np.ndarray, ground_z: float):
+    """Where the rays of pixels ``uv`` (M, 2) of one frame (world-to-camera 4x4) meet the plane
+    ``z = ground_z``: ground points xy (K, 2) ENU m, their distances along the unit rays (K,) m, the
+    rays' directions (K, 3), and the camera's height above the plane (m). Rays not going down are dropped."""
+    o, d = camera.rays_world(np.asarray(cam_from_world, np.float64), uv)
+    down = d[:, 2] < -1e-6
+    t = (ground_z - o[2]) / np.where(down, d[:, 2], -1.0)
+    ok = down & (t > 0)
+    return o[:2] + t[ok, None] * d[ok, :2], t[ok], d[ok], float(o[2] - ground_z)
+
+
 def ground_hits(camera: Camera, cam_from_world: list[np.ndarray], ground_z: float, step_px: int = 16):
     """Ground points (M, 2) and metres-per-pixel there (M,) for a sparse pixel grid of every frame."""
     uv = camera.pixel_grid()[::step_px, ::step_px].reshape(-1, 2)
     f = 0.5 * (camera.fx + camera.fy)
     pts, gsd, heights = [], [], []
     for T in cam_from_world:
-        o, d = camera.rays_world(T, uv)
-        heights.append(o[2] - ground_z)
-        down = d[:, 2] < -1e-6
-        t = (ground_z - o[2]) / np.where(down, d[:, 2], -1.0)
-        ok = down & (t > 0)
-        pts.append(o[:2] + t[ok, None] * d[ok, :2])
+        xy, t, d, height = frame_ground_hits(camera, T, uv, ground_z)
+        heights.append(height)
+        pts.append(xy)
         # metres per pixel along the ray at distance t, projected onto the ground (obliquity)
-        gsd.append(t[ok] / f / np.maximum(np.abs(d[ok, 2]), 0.2))
+        gsd.append(t / f / np.maximum(np.abs(d[:, 2]), 0.2))
     return np.concatenate(pts), np.concatenate(gsd), np.asarray(heights)
 
 
