@@ -23,6 +23,7 @@ flight folder with suffix ``_sfm``): the paper's set-up, whose poses came from C
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -33,7 +34,18 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench._common import OUT_DIR, write_json  # noqa: E402
-from bench.fields_ab import parse_variant  # noqa: E402
+
+
+def parse_setting(text: str) -> tuple[str, object]:
+    """``key=value`` -> (key, value), the value parsed as JSON when it parses (``[4,15]``, ``null``,
+    ``true``), else kept as text."""
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise SystemExit(f"--set wants KEY=VALUE, got {text!r}")
+    try:
+        return key, json.loads(value)
+    except json.JSONDecodeError:
+        return key, value
 
 
 def load_avg() -> str:
@@ -191,7 +203,7 @@ def main() -> None:
     from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split
 
     setup_torch(args.threads)
-    overrides = {k: v for item in args.set for k, v in parse_variant(":" + item)[1].items()}
+    overrides = dict(parse_setting(item) for item in args.set)
     jitter = (args.jitter_m, args.jitter_deg)
     tag = "" if jitter == (0.05, 0.15) else f"_jit{args.jitter_m:g}m{args.jitter_deg:g}deg"
     tag += "" if args.drift_scale == 1.0 else f"_drift{args.drift_scale:g}"

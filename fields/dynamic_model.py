@@ -11,6 +11,7 @@ exactly as for the static model.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -56,7 +57,8 @@ class DynamicModel(nn.Module):
     """K-Planes field, background and sampler; :meth:`render_rays` is the rendering entry point."""
 
     def __init__(self, kind: str, field_config: KPlanesFieldConfig, sampler_config: SamplerConfig, ground_z: float,
-                 background_radius_m: float, t0_us: int = 0, span_us: int = 0, pose_knots: int = 0):
+                 background_radius_m: float, t0_us: int = 0, span_us: int = 0, pose_knots: int = 0,
+                 pose_coarse_knots: Sequence[int] = ()):
         super().__init__()
         if kind not in KINDS:
             raise ValueError(f"unknown dynamic kind {kind!r}; expected one of {KINDS}")
@@ -71,7 +73,7 @@ class DynamicModel(nn.Module):
         self.background = Background(ground_z, background_radius_m)
         self.sampler = make_sampler(sampler_config)
         #: learned time-smooth correction of the telemetry poses (None: poses taken as given)
-        self.pose_drift = PoseDrift(pose_knots) if pose_knots else None
+        self.pose_drift = PoseDrift(pose_knots, pose_coarse_knots) if pose_knots else None
 
     @property
     def extended(self) -> bool:
@@ -83,14 +85,16 @@ class DynamicModel(nn.Module):
                 "sampler": {**asdict(self.sampler_config), "grid_shape": list(self.sampler_config.grid_shape)},
                 "ground_z": self.background.ground_z, "background_radius_m": self.background.radius_m,
                 "t0_us": self.t0_us, "span_us": self.span_us,
-                "pose_knots": self.pose_drift.knots if self.pose_drift is not None else 0}
+                "pose_knots": self.pose_drift.knots if self.pose_drift is not None else 0,
+                "pose_coarse_knots": self.pose_drift.coarse_knots if self.pose_drift is not None else []}
 
     @classmethod
     def from_description(cls, d: dict) -> DynamicModel:
         s = dict(d["sampler"])
         s["grid_shape"] = tuple(s["grid_shape"])
         return cls(d["kind"], KPlanesFieldConfig.from_json(d["field"]), SamplerConfig(**s), d["ground_z"],
-                   d["background_radius_m"], d.get("t0_us", 0), d.get("span_us", 0), d.get("pose_knots", 0))
+                   d["background_radius_m"], d.get("t0_us", 0), d.get("span_us", 0), d.get("pose_knots", 0),
+                   d.get("pose_coarse_knots", ()))
 
     def param_count(self) -> int:
         return sum(p.numel() for p in self.parameters())

@@ -107,6 +107,9 @@ class DynamicFitConfig:
     #: (bench/RESULTS.md, Table III session 7); 1 s beat 0.5 s (-0.33 dB) and 3 s (-3.05 dB) for
     #: extended on the 300-frame flight. Not learned on SfM-refined poses (``pose_drift_on_sfm``)
     pose_knot_s: float | None = 1.0
+    #: coarser knot levels on top of the ``pose_knot_s`` ones, one spacing (s) per level, their
+    #: corrections summed (:class:`fields.pose_drift.PoseDrift`): the slow drift pools more rays per knot
+    pose_knot_coarse_s: tuple[float, ...] = ()
     #: learn the correction even when every frame's pose was refined by SfM (``poses.json`` source
     #: "sfm"); off: such poses are taken as given. On SfM poses the knots cost held-out PSNR on both
     #: bench flights, both kinds: 80 frames stock 0.05 / extended 1.13 dB, 300 frames 0.84 / 0.70 dB
@@ -162,12 +165,13 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
                            cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, gate)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
-    knots, why = pose_knots(dd, cfg)
+    knots, coarse, why = pose_knots(dd, cfg)
     sizing.reasoning.append(why)
     if cfg.kind == "kplanes-ext":
         sizing.reasoning.append(why_gate)
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
-                         dd.t0_us, dd.span_us, pose_knots=knots)
+                         dd.t0_us, dd.span_us, pose_knots=knots,
+                         pose_coarse_knots=coarse)
     return model, bounds, asdict(sizing)
 
 
@@ -180,15 +184,22 @@ def time_gate(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[bool, str]:
     return False, "time gate: off, the poses are telemetry (the gate was measured to fail on drifting poses)"
 
 
-def pose_knots(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[int, str]:
-    """Knots of the learned pose-drift correction for this flight, and why (a line for fit.json)."""
+def pose_knots(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[int, list[int], str]:
+    """Knots of the learned pose-drift correction for this flight (finest level, then the coarser
+    levels), and why (a line for fit.json)."""
     if not cfg.pose_knot_s:
-        return 0, "pose drift: not learned (pose_knot_s off)"
+        return 0, [], "pose drift: not learned (pose_knot_s off)"
     if dd.all_poses_sfm and not cfg.pose_drift_on_sfm:
-        return 0, (f"pose drift: not learned, all {dd.n} poses are SfM-refined (an explicit --pose-knot-s or "
-                   "pose_drift_on_sfm learns it)")
-    knots = knot_count(dd.span_us / 1e6, cfg.pose_knot_s)
-    return knots, f"pose drift: {knots} knots, one per {cfg.pose_knot_s:g} s of flight"
+        return 0, [], (f"pose drift: not learned, all {dd.n} poses are SfM-refined (an explicit --pose-knot-s or "
+                       "pose_drift_on_sfm learns it)")
+    span_s = dd.span_us / 1e6
+    knots = knot_count(span_s, cfg.pose_knot_s)
+    coarse = [knot_count(span_s, s) for s in cfg.pose_knot_coarse_s]
+    why = f"pose drift: {knots} knots, one per {cfg.pose_knot_s:g} s of flight"
+    if coarse:
+        why += ", plus coarser levels of " + ", ".join(
+            f"{k} knots ({s:g} s)" for k, s in zip(coarse, cfg.pose_knot_coarse_s, strict=True))
+    return knots, coarse, why
 
 
 def _optimizer(model: DynamicModel, cfg: DynamicFitConfig):
@@ -197,8 +208,8 @@ def _optimizer(model: DynamicModel, cfg: DynamicFitConfig):
     pose_ids = {id(p) for p in drift.parameters()} if drift is not None else set()
     groups = [{"params": [p for p in model.parameters() if id(p) not in pose_ids], "base_lr": cfg.lr}]
     if drift is not None:
-        groups += [{"params": [drift.trans], "base_lr": cfg.pose_lr_m},
-                   {"params": [drift.rot], "base_lr": cfg.pose_lr_rad}]
+        groups += [{"params": [drift.trans, *drift.coarse_trans], "base_lr": cfg.pose_lr_m},
+                   {"params": [drift.rot, *drift.coarse_rot], "base_lr": cfg.pose_lr_rad}]
     for g in groups:
         g["lr"] = g["base_lr"]
     return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)

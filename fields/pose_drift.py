@@ -17,11 +17,18 @@ interpolation of its two neighbouring knots, so
 
 Frames: the correction maps the telemetry camera-to-world pose to the field's world:
 ``R_world_cam' = exp(rot) @ R_world_cam``, ``centre' = centre + trans``. Zero knots = the telemetry poses.
+
+Optional coarser knot levels (``coarse_knots``) add their own interpolated corrections to the fine
+one's. They add no new shapes of correction (the fine knots alone can take any of them) but change
+how the optimiser moves: a coarse knot pools the rays of every frame across its wider span, so the
+slow part of the drift gets a gradient with less noise, and the fine knots are left the residual
+(a hierarchical spline's preconditioning).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -53,26 +60,34 @@ def rotate(rotvec: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 class PoseDrift(nn.Module):
     """``rot`` (K, 3): per knot a world-frame rotation vector (rad); ``trans`` (K, 3): a camera-centre
-    translation (ENU m). Both start at zero (the telemetry poses)."""
+    translation (ENU m); ``coarse_rot`` / ``coarse_trans``: the same for each coarser level (K_l, 3).
+    All start at zero (the telemetry poses); a frame's correction is the sum over the levels."""
 
-    def __init__(self, knots: int):
+    def __init__(self, knots: int, coarse_knots: Sequence[int] = ()):
         super().__init__()
-        if knots < 2:
-            raise ValueError(f"a pose drift needs at least 2 knots, got {knots}")
+        for k in (knots, *coarse_knots):
+            if int(k) != k or k < 2:
+                raise ValueError(f"every pose-drift level needs a whole number of at least 2 knots, got {k}")
         self.rot = nn.Parameter(torch.zeros(knots, 3))
         self.trans = nn.Parameter(torch.zeros(knots, 3))
+        self.coarse_rot = nn.ParameterList([nn.Parameter(torch.zeros(int(k), 3)) for k in coarse_knots])
+        self.coarse_trans = nn.ParameterList([nn.Parameter(torch.zeros(int(k), 3)) for k in coarse_knots])
 
     @property
     def knots(self) -> int:
+        """Knots of the finest level."""
         return self.rot.shape[0]
 
+    @property
+    def coarse_knots(self) -> list[int]:
+        return [int(r.shape[0]) for r in self.coarse_rot]
+
     def at(self, t01: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rotation vectors (R, 3) and translations (R, 3) at times ``t01`` (R,), clamped to [0, 1]."""
-        x = t01.clamp(0.0, 1.0) * (self.knots - 1)
-        i0 = x.floor().long().clamp(max=self.knots - 2)
-        w = (x - i0.to(x.dtype))[:, None]
-        rot = self.rot[i0] * (1 - w) + self.rot[i0 + 1] * w
-        trans = self.trans[i0] * (1 - w) + self.trans[i0 + 1] * w
+        """Rotation vectors (R, 3) and translations (R, 3) at times ``t01`` (R,), clamped to [0, 1]:
+        the sum of every level's linear interpolation between its two neighbouring knots."""
+        rot, trans = _interpolate(self.rot, t01), _interpolate(self.trans, t01)
+        for r, t in zip(self.coarse_rot, self.coarse_trans, strict=True):
+            rot, trans = rot + _interpolate(r, t01), trans + _interpolate(t, t01)
         return rot, trans
 
     def apply(self, origins: torch.Tensor, dirs: torch.Tensor, t01: torch.Tensor
@@ -98,16 +113,35 @@ class PoseDrift(nn.Module):
         out[:3, 3] = -R_new.T @ c_new
         return out
 
+    def _at_knots(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The summed correction at the finest level's knot times, (K, 3) each."""
+        if not len(self.coarse_rot):
+            return self.rot, self.trans
+        return self.at(torch.linspace(0.0, 1.0, self.knots, device=self.rot.device))
+
     def penalty(self, rot_scale_m: float = 30.0) -> torch.Tensor:
-        """Mean squared correction in metres: translation, and rotation as the shift it causes at
-        ``rot_scale_m`` range (keeps the gauge — a shift of field and all poses together — anchored
-        to the telemetry)."""
-        return (self.trans.square().sum(-1).mean() + (rot_scale_m ** 2) * self.rot.square().sum(-1).mean())
+        """Mean squared correction in metres at the finest knots' times: translation, and rotation as
+        the shift it causes at ``rot_scale_m`` range (keeps the gauge — a shift of field and all
+        poses together — anchored to the telemetry)."""
+        rot, trans = self._at_knots()
+        return trans.square().sum(-1).mean() + (rot_scale_m ** 2) * rot.square().sum(-1).mean()
 
     def summary(self) -> dict:
-        """Size of the learned corrections: RMS / max translation (m) and rotation (deg)."""
+        """Size of the learned corrections at the finest knots' times: RMS / max translation (m) and
+        rotation (deg); the knot count of each level."""
         with torch.no_grad():
-            t = self.trans.norm(dim=-1)
-            r = torch.rad2deg(self.rot.norm(dim=-1))
-        return {"knots": self.knots, "trans_rms_m": float(t.square().mean().sqrt()), "trans_max_m": float(t.max()),
+            rot, trans = self._at_knots()
+            t = trans.norm(dim=-1)
+            r = torch.rad2deg(rot.norm(dim=-1))
+        return {"knots": self.knots, "coarse_knots": self.coarse_knots,
+                "trans_rms_m": float(t.square().mean().sqrt()), "trans_max_m": float(t.max()),
                 "rot_rms_deg": float(r.square().mean().sqrt()), "rot_max_deg": float(r.max())}
+
+
+def _interpolate(knots: torch.Tensor, t01: torch.Tensor) -> torch.Tensor:
+    """Values (R, C) at times ``t01`` (R,) (clamped to [0, 1]) of knots (K, C) evenly spaced over [0, 1]."""
+    n = knots.shape[0]
+    x = t01.clamp(0.0, 1.0) * (n - 1)
+    i0 = x.floor().long().clamp(max=n - 2)
+    w = (x - i0.to(x.dtype))[:, None]
+    return knots[i0] * (1 - w) + knots[i0 + 1] * w

@@ -433,6 +433,27 @@ def test_fit_with_pose_drift_moves_the_knots_and_round_trips(dynamic_flight, tmp
     assert no_drift.pose_drift is None and np.array_equal(no_drift.field_pose(T, 0.3), T)
 
 
+def test_fit_with_coarse_pose_knot_levels_moves_every_level_and_round_trips(dynamic_flight, tmp_path):
+    """A 2 s level under the 1 s knots: both levels learn, fit.json says why, the checkpoint keeps both."""
+    from fields.dynamic_training import pose_knots
+
+    dd = load_dynamic_flight(dynamic_flight)
+    cfg = DynamicFitConfig(kind="kplanes", pose_knot_s=1.0, pose_knot_coarse_s=(2.0,), **TINY)
+    knots, coarse, why = pose_knots(dd, cfg)
+    assert (knots, coarse) == (7, [4]) and "4 knots (2 s)" in why
+    r = fit_dynamic(dd, cfg, out_dir=tmp_path)
+    drift = r.model.pose_drift
+    assert drift.coarse_knots == [4]
+    assert float(drift.trans.detach().abs().max()) > 0 and float(drift.coarse_trans[0].detach().abs().max()) > 0
+    assert float(drift.coarse_rot[0].detach().abs().max()) > 0
+    assert any("4 knots (2 s)" in line for line in r.sizing["reasoning"])
+    model, _ = load_dynamic_checkpoint(tmp_path / "dynamic.pt", "cpu")
+    assert model.pose_drift.coarse_knots == [4]
+    assert torch.equal(model.pose_drift.coarse_trans[0], drift.coarse_trans[0])
+    T = dd.data.cam_from_world[2]
+    np.testing.assert_allclose(model.field_pose(T, 0.4), r.model.field_pose(T, 0.4), atol=1e-12)
+
+
 def test_cli_fit_with_pose_knots_and_render_recorded_poses_at_the_corrected_pose(dynamic_flight, tmp_path):
     """`uavsim fit --pose-knot-s` learns the drift (reported in fit.json); `uavsim render` draws a
     recorded (telemetry) pose at its corrected pose."""
@@ -468,8 +489,8 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
 
     dd = load_dynamic_flight(dynamic_flight)
     assert set(dd.pose_sources) == {"telemetry"} and not dd.all_poses_sfm
-    knots, why = pose_knots(dd, DynamicFitConfig(kind="kplanes"))
-    assert knots == 7 and "one per 1 s" in why  # 5.5 s of flight
+    knots, coarse, why = pose_knots(dd, DynamicFitConfig(kind="kplanes"))
+    assert knots == 7 and coarse == [] and "one per 1 s" in why  # 5.5 s of flight
     flight = tmp_path / "f"
     shutil.copytree(dynamic_flight, flight)
     pf = PosesFile.load(flight / "derived" / "poses.json")
@@ -478,7 +499,7 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     pf.save(flight / "derived" / "poses.json")
     sfm = load_dynamic_flight(flight)
     assert sfm.all_poses_sfm
-    knots, why = pose_knots(sfm, DynamicFitConfig(kind="kplanes"))
+    knots, _, why = pose_knots(sfm, DynamicFitConfig(kind="kplanes"))
     assert knots == 0 and "SfM-refined" in why
     assert pose_knots(sfm, DynamicFitConfig(pose_drift_on_sfm=True))[0] == 7
     assert pose_knots(dd, DynamicFitConfig(pose_knot_s=None))[0] == 0

@@ -83,6 +83,48 @@ def test_knot_count_from_flight_span_and_bad_values():
         PoseDrift(1)
 
 
+def test_coarse_levels_add_their_interpolated_corrections():
+    """Levels sum: fine 5 knots + coarse 3 knots at hand values, and the same correction held by the
+    fine knots alone (the coarse knots nest in the fine ones) gives the same rays, penalty and summary."""
+    both = PoseDrift(5, coarse_knots=[3])
+    with torch.no_grad():
+        both.trans[:, 0] = torch.tensor([0.0, 0.1, 0.0, 0.0, 0.2])
+        both.coarse_trans[0][:, 0] = torch.tensor([1.0, 3.0, 2.0])
+        both.coarse_rot[0][:, 2] = torch.tensor([0.0, 0.02, 0.01])
+    rot, t = both.at(torch.tensor([0.0, 0.25, 0.5, 0.875, 1.0]))
+    assert np.allclose(t[:, 0].detach().numpy(), [1.0, 2.0 + 0.1, 3.0, 2.25 + 0.1, 2.0 + 0.2])
+    assert np.allclose(rot[:, 2].detach().numpy(), [0.0, 0.01, 0.02, 0.0125, 0.01])
+    fine = PoseDrift(5)
+    with torch.no_grad():
+        fine.trans[:, 0] = torch.tensor([1.0, 2.1, 3.0, 2.5, 2.2])
+        fine.rot[:, 2] = torch.tensor([0.0, 0.01, 0.02, 0.015, 0.01])
+    t01 = torch.rand(50, generator=torch.Generator().manual_seed(3))
+    o, d = torch.randn(50, 3), torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    for a, b in zip(both.apply(o, d, t01), fine.apply(o, d, t01), strict=True):
+        assert torch.allclose(a, b, atol=1e-6)
+    assert float(both.penalty().detach()) == pytest.approx(float(fine.penalty().detach()), rel=1e-6)
+    sb, sf = both.summary(), fine.summary()
+    assert sb.pop("coarse_knots") == [3] and sf.pop("coarse_knots") == []
+    assert sb == pytest.approx(sf, rel=1e-6)
+    T = look_at(np.array([1.0, 2.0, 15.0]), np.array([5.0, 0.0, 0.0]))
+    assert np.allclose(both.correct_cam_from_world(T, 0.6), fine.correct_cam_from_world(T, 0.6), atol=1e-6)
+
+
+def test_coarse_levels_state_round_trip_and_bad_levels():
+    a = PoseDrift(6, coarse_knots=[3, 2])
+    with torch.no_grad():
+        for p in a.parameters():
+            p.normal_()
+    b = PoseDrift(6, coarse_knots=[3, 2])
+    b.load_state_dict(a.state_dict())
+    t = torch.linspace(0, 1, 11)
+    assert all(torch.equal(x, y) for x, y in zip(a.at(t), b.at(t), strict=True))
+    assert PoseDrift(4).coarse_knots == [] and len(list(PoseDrift(4).parameters())) == 2
+    for bad in ([1], [2.5], [0]):
+        with pytest.raises(ValueError, match="at least 2 knots"):
+            PoseDrift(6, coarse_knots=bad)
+
+
 def _misses(drift, centres, dirs, t01, points):
     """Perpendicular distance (m) of each point to its corrected ray."""
     o, d = drift.apply(centres, dirs, t01)
