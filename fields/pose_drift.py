@@ -145,3 +145,15 @@ def _interpolate(knots: torch.Tensor, t01: torch.Tensor) -> torch.Tensor:
     i0 = x.floor().long().clamp(max=n - 2)
     w = (x - i0.to(x.dtype))[:, None]
     return knots[i0] * (1 - w) + knots[i0 + 1] * w
+
+
+def warmup_scale(progress: float, delay: float) -> float:
+    """Step-size factor of the pose knots at ``progress`` (share of training, 0..1): 0 while
+    ``progress < delay``, then a linear ramp to 1 at ``2 * delay``; ``delay <= 0``: always 1.
+
+    Adam moves every parameter by about its step size whatever the gradient's size, so knots that learn
+    from the first steps' random field walk decimetres before the field shows a world to line the
+    frames up to, and the field then fits the walk."""
+    if delay <= 0:
+        return 1.0
+    return float(min(max((progress - delay) / delay, 0.0), 1.0))

@@ -454,6 +454,23 @@ def test_fit_with_coarse_pose_knot_levels_moves_every_level_and_round_trips(dyna
     np.testing.assert_allclose(model.field_pose(T, 0.4), r.model.field_pose(T, 0.4), atol=1e-12)
 
 
+def test_pose_delay_keeps_the_knots_still_while_the_field_learns(dynamic_flight):
+    """pose_delay 0.5: over 2 steps (progress 0, 0.5) the knots stay exactly at zero while the field
+    moves; a third step (progress 2/3, step-size factor 1/3) moves them."""
+    dd = load_dynamic_flight(dynamic_flight)
+    frozen = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", pose_knot_s=2.0, pose_delay=0.5,
+                                              **{**TINY, "iters": 2}))
+    assert not frozen.model.pose_drift.trans.any() and not frozen.model.pose_drift.rot.any()
+    from fields.dynamic_training import build_model, split
+
+    torch.manual_seed(0)  # the fit's seed: the same initial field
+    cfg = DynamicFitConfig(kind="kplanes", pose_knot_s=2.0, **TINY)
+    start = dict(build_model(dd, split(dd, cfg.holdout_every)[0], cfg, None)[0].field.named_parameters())
+    assert any(not torch.equal(p, start[n]) for n, p in frozen.model.field.named_parameters())
+    thawed = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", pose_knot_s=2.0, pose_delay=0.5, **TINY))
+    assert float(thawed.model.pose_drift.trans.detach().abs().max()) > 0
+
+
 def test_cli_fit_with_pose_knots_and_render_recorded_poses_at_the_corrected_pose(dynamic_flight, tmp_path):
     """`uavsim fit --pose-knot-s` learns the drift (reported in fit.json); `uavsim render` draws a
     recorded (telemetry) pose at its corrected pose."""
@@ -490,7 +507,10 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     dd = load_dynamic_flight(dynamic_flight)
     assert set(dd.pose_sources) == {"telemetry"} and not dd.all_poses_sfm
     knots, coarse, why = pose_knots(dd, DynamicFitConfig(kind="kplanes"))
-    assert knots == 7 and coarse == [] and "one per 1 s" in why  # 5.5 s of flight
+    assert knots == 7 and coarse == [3, 2] and "one per 1 s" in why  # 5.5 s of flight; levels of 4 s and 15 s
+    assert "first 10% of training" in why
+    assert pose_knots(dd, DynamicFitConfig(pose_knot_coarse_s=(), pose_delay=0.0)) == (7, [], "pose drift: 7 knots, "
+                                                                                          "one per 1 s of flight")
     flight = tmp_path / "f"
     shutil.copytree(dynamic_flight, flight)
     pf = PosesFile.load(flight / "derived" / "poses.json")

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from fields.pose_drift import PoseDrift, knot_count, rotate
+from fields.pose_drift import PoseDrift, knot_count, rotate, warmup_scale
 from telemetry.frames import look_at
 
 rotvecs = st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=3, max_size=3)
@@ -204,3 +204,16 @@ def test_background_pose_grad_passes_values_and_only_background_gradients():
     g.manual_seed(7)
     *_, gt_none, gr_none = knot_grads(lambda a, b: background_pose_grad(a, b, torch.zeros(6, dtype=torch.bool)))
     assert not gt_none.any() and not gr_none.any()
+
+
+def test_warmup_scale_holds_then_ramps():
+    assert [warmup_scale(p, 0.1) for p in (0.0, 0.05, 0.1, 0.15, 0.2, 0.7, 1.0)] == pytest.approx(
+        [0.0, 0.0, 0.0, 0.5, 1.0, 1.0, 1.0])
+    assert warmup_scale(0.0, 0.0) == 1.0 and warmup_scale(0.3, -1.0) == 1.0
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 0.5))
+def test_warmup_scale_is_a_monotone_factor(a, b, delay):
+    lo, hi = sorted((a, b))
+    assert 0.0 <= warmup_scale(lo, delay) <= warmup_scale(hi, delay) <= 1.0
