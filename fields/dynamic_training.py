@@ -270,8 +270,10 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         optim = _optimizer(model, cfg)
         if ck.get("optim"):
             optim.load_state_dict(ck["optim"])
-            for g in optim.param_groups:  # checkpoints from before per-group step sizes
+            for g in optim.param_groups:  # checkpoints from before per-group step sizes / the pose delay
                 g.setdefault("base_lr", cfg.lr)
+            for g in optim.param_groups[1:]:  # groups after the field's are the pose knots' (_optimizer)
+                g.setdefault("pose", True)
         step, train_s, curve = int(ck["step"]), float(ck["train_s"]), list(ck.get("curve", []))
         bounds = SceneBounds(**ck["bounds"]) if ck.get("bounds") else None
         sizing = ck.get("sizing")
@@ -319,7 +321,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         for g in optim.param_groups:
             g["lr"] = g["base_lr"] * decay * (pose_scale if g.get("pose") else 1.0)
         if cfg.coarse_to_fine > 0:
-            enc.scale_weights.copy_(coarse_to_fine_weights(enc.n_scales, progress(), cfg.coarse_to_fine))
+            enc.set_scale_weights(coarse_to_fine_weights(enc.n_scales, progress(), cfg.coarse_to_fine))
         fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays - n_box,), device=dev, generator=gen)]
         pi = torch.randint(hw, (cfg.batch_rays - n_box,), device=dev, generator=gen)
         if n_box:
@@ -378,7 +380,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             t_mark = time.perf_counter()
     if interactive:
         print(file=sys.stderr)
-    enc.scale_weights.fill_(1.0)  # a budget cut short mid-schedule still renders with every scale
+    enc.set_scale_weights(torch.ones(enc.n_scales))  # a budget cut short mid-schedule renders every scale
     model.eval()
     if ckpt:
         save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))

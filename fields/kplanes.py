@@ -213,6 +213,13 @@ class KPlanesEncoding(nn.Module):
         # coarse-to-fine (:func:`coarse_to_fine_weights`): each scale's colour features are multiplied by
         # its weight; all ones (the default, and after training) leave the encoding as it is
         self.register_buffer("scale_weights", torch.ones(len(config.multipliers)), persistent=False)
+        self._every_scale_full = True  # kept beside the buffer so the common case costs no device sync
+
+    def set_scale_weights(self, weights: torch.Tensor) -> None:
+        """Set the per-scale weights (n_scales,), e.g. from :func:`coarse_to_fine_weights`; all ones: off."""
+        weights = torch.as_tensor(weights, dtype=torch.float32).cpu()
+        self._every_scale_full = bool((weights == 1).all())
+        self.scale_weights.copy_(weights)
 
     @property
     def n_scales(self) -> int:
@@ -220,7 +227,7 @@ class KPlanesEncoding(nn.Module):
 
     def _weighted(self, out: dict) -> dict:
         """``out`` with each scale's feature columns times its ``scale_weights`` (mask columns as they are)."""
-        if bool((self.scale_weights == 1).all()):
+        if self._every_scale_full:
             return out
         per_scale = self.config.features * (2 if self.config.extended else 1)
         w = self.scale_weights.repeat_interleave(per_scale)

@@ -196,7 +196,7 @@ def test_a_faded_out_scale_gives_zero_features_and_no_gradient_to_its_planes(ext
                                         features=4, extended=extended))
     x, t = torch.rand(50, 3), torch.rand(50)
     full = enc(x, t)["features"].detach()
-    enc.scale_weights.copy_(torch.tensor([1.0, 0.0]))
+    enc.set_scale_weights(torch.tensor([1.0, 0.0]))
     out = enc(x, t)["features"]
     per_scale = 4 * (2 if extended else 1)
     assert torch.equal(out[:, :per_scale], full[:, :per_scale])
