@@ -66,6 +66,9 @@ class DynamicFitConfig:
     features: int = 16
     hidden: int = 64
     appearance_dim: int = 8
+    #: cap on the finest plane resolution per side (the data's GSD sets it below the cap). On the bench flights the
+    #: cap binds (18 cm cells against 12.6 cm GSD); 384 lets the GSD decide, at 1.8-1.9x the MB, and measured no
+    #: better at 900 s (-0.13 / +0.02 dB extended / stock, 80 frames; bench/RESULTS.md, Table III session 18)
     max_resolution: int = 256
     cell_factor: float = 1.0
     lambda_dist: float = 2e-3
