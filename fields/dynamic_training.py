@@ -272,11 +272,11 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             raise ValueError(f"{ckpt} holds a {model.kind} field, not {cfg.kind}; drop --resume to start over")
         optim = _optimizer(model, cfg)
         if ck.get("optim"):
-            optim.load_state_dict(ck["optim"])
-            for g in optim.param_groups:  # checkpoints from before per-group step sizes / the pose delay
-                g.setdefault("base_lr", cfg.lr)
-            for g in optim.param_groups[1:]:  # groups after the field's are the pose knots' (_optimizer)
-                g.setdefault("pose", True)
+            built = [{k: v for k, v in g.items() if k != "params"} for g in optim.param_groups]
+            optim.load_state_dict(ck["optim"])  # takes the saved groups' keys, dropping the ones just built
+            for g, b in zip(optim.param_groups, built, strict=True):  # keys older checkpoints lack
+                g.setdefault("base_lr", cfg.lr)  # from before per-group step sizes
+                g.setdefault("pose", b.get("pose", False))  # from before the pose delay
         step, train_s, curve = int(ck["step"]), float(ck["train_s"]), list(ck.get("curve", []))
         bounds = SceneBounds(**ck["bounds"]) if ck.get("bounds") else None
         sizing = ck.get("sizing")
@@ -308,9 +308,6 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     n_box = int(round(cfg.box_ray_fraction * cfg.batch_rays)) if len(pos_frame) else 0
     iw = importance_weights(cfg.batch_rays, n_box, len(train_idx) * hw, len(pos_frame), dev)
 
-    def progress() -> float:
-        return schedule_progress(step, cfg.iters, train_s, cfg.budget_s)
-
     enc = model.field.encoding
 
     last_log = last_ckpt = 0.0
@@ -318,13 +315,14 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     t_mark = time.perf_counter()
     loss_ema = None
     while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
-        decay = cfg.lr_final ** progress()
+        share = schedule_progress(step, cfg.iters, train_s, cfg.budget_s)  # of training, 0..1
+        decay = cfg.lr_final ** share
         lr = cfg.lr * decay
-        pose_scale = warmup_scale(progress(), cfg.pose_delay)
+        pose_scale = warmup_scale(share, cfg.pose_delay)
         for g in optim.param_groups:
             g["lr"] = g["base_lr"] * decay * (pose_scale if g.get("pose") else 1.0)
         if cfg.coarse_to_fine > 0:
-            enc.set_scale_weights(coarse_to_fine_weights(enc.n_scales, progress(), cfg.coarse_to_fine))
+            enc.set_scale_weights(coarse_to_fine_weights(enc.n_scales, share, cfg.coarse_to_fine))
         fi = train_t[torch.randint(len(train_idx), (cfg.batch_rays - n_box,), device=dev, generator=gen)]
         pi = torch.randint(hw, (cfg.batch_rays - n_box,), device=dev, generator=gen)
         if n_box:

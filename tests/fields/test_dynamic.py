@@ -18,6 +18,7 @@ from fields.dynamic_model import DynamicModel, plane_sizing
 from fields.dynamic_simscene import LineSpec, PoseNoise, noisy_poses, write_line_flight
 from fields.dynamic_training import (
     DynamicFitConfig,
+    build_model,
     evaluate_dynamic,
     fit_dynamic,
     load_dynamic_checkpoint,
@@ -182,8 +183,6 @@ def test_plane_sizing_rejects_bad_extent():
 
 # ---- model and trainer ------------------------------------------------------------------------
 def _model(dd, kind):
-    from fields.dynamic_training import build_model
-
     cfg = DynamicFitConfig(kind=kind, **TINY)
     model, _, _ = build_model(dd, list(range(dd.n)), cfg, None)
     return model
@@ -326,7 +325,6 @@ def test_model_rejects_mismatched_kind(dynamic_flight):
 def test_a_fresh_kplanes_mask_can_start_as_background(dynamic_flight):
     """``mask_init_background``: an untrained dynamic field renders no boxes; torch's default start
     (~uniform over 4 outputs) renders foreground 0.75 wherever the field is opaque."""
-    from fields.dynamic_training import build_model
     from fields.mask_boxes import boxes_from_probabilities
 
     dd = load_dynamic_flight(dynamic_flight)
@@ -427,7 +425,6 @@ def test_fit_with_pose_drift_moves_the_knots_and_round_trips(dynamic_flight, tmp
     again = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", pose_knot_s=2.0, **{**TINY, "iters": 5}),
                         out_dir=tmp_path, resume=True)
     assert again.step == 5 and again.model.pose_drift.knots == 4
-    from fields.dynamic_training import build_model
 
     no_drift = build_model(dd, list(range(dd.n)), DynamicFitConfig(kind="kplanes", pose_knot_s=None, **TINY), None)[0]
     assert no_drift.pose_drift is None and np.array_equal(no_drift.field_pose(T, 0.3), T)
@@ -461,8 +458,6 @@ def test_pose_delay_keeps_the_knots_still_while_the_field_learns(dynamic_flight)
     frozen = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", pose_knot_s=2.0, pose_delay=0.5,
                                               **{**TINY, "iters": 2}))
     assert not frozen.model.pose_drift.trans.any() and not frozen.model.pose_drift.rot.any()
-    from fields.dynamic_training import build_model, split
-
     torch.manual_seed(0)  # the fit's seed: the same initial field
     cfg = DynamicFitConfig(kind="kplanes", pose_knot_s=2.0, **TINY)
     start = dict(build_model(dd, split(dd, cfg.holdout_every)[0], cfg, None)[0].field.named_parameters())
