@@ -58,7 +58,7 @@ class DynamicModel(nn.Module):
 
     def __init__(self, kind: str, field_config: KPlanesFieldConfig, sampler_config: SamplerConfig, ground_z: float,
                  background_radius_m: float, t0_us: int = 0, span_us: int = 0, pose_knots: int = 0,
-                 pose_coarse_knots: Sequence[int] = ()):
+                 pose_coarse_knots: Sequence[int] = (), pose_frame_t01: Sequence[float] = ()):
         super().__init__()
         if kind not in KINDS:
             raise ValueError(f"unknown dynamic kind {kind!r}; expected one of {KINDS}")
@@ -72,8 +72,9 @@ class DynamicModel(nn.Module):
         self.field = KPlanesField(field_config)
         self.background = Background(ground_z, background_radius_m)
         self.sampler = make_sampler(sampler_config)
-        #: learned time-smooth correction of the telemetry poses (None: poses taken as given)
-        self.pose_drift = PoseDrift(pose_knots, pose_coarse_knots) if pose_knots else None
+        #: learned time-smooth correction of the telemetry poses, with per-frame rows for the frames at
+        #: ``pose_frame_t01`` if given (None: poses taken as given)
+        self.pose_drift = PoseDrift(pose_knots, pose_coarse_knots, pose_frame_t01) if pose_knots else None
 
     @property
     def extended(self) -> bool:
@@ -81,12 +82,14 @@ class DynamicModel(nn.Module):
 
     # ---- checkpoint ---------------------------------------------------------------------
     def describe(self) -> dict:
+        drift = self.pose_drift
         return {"kind": self.kind, "field": self.field_config.to_json(),
                 "sampler": {**asdict(self.sampler_config), "grid_shape": list(self.sampler_config.grid_shape)},
                 "ground_z": self.background.ground_z, "background_radius_m": self.background.radius_m,
                 "t0_us": self.t0_us, "span_us": self.span_us,
-                "pose_knots": self.pose_drift.knots if self.pose_drift is not None else 0,
-                "pose_coarse_knots": self.pose_drift.coarse_knots if self.pose_drift is not None else []}
+                "pose_knots": drift.knots if drift is not None else 0,
+                "pose_coarse_knots": drift.coarse_knots if drift is not None else [],
+                "pose_frame_t01": drift.frame_t01.tolist() if drift is not None and drift.frames else []}
 
     @classmethod
     def from_description(cls, d: dict) -> DynamicModel:
@@ -94,14 +97,15 @@ class DynamicModel(nn.Module):
         s["grid_shape"] = tuple(s["grid_shape"])
         return cls(d["kind"], KPlanesFieldConfig.from_json(d["field"]), SamplerConfig(**s), d["ground_z"],
                    d["background_radius_m"], d.get("t0_us", 0), d.get("span_us", 0), d.get("pose_knots", 0),
-                   d.get("pose_coarse_knots", ()))
+                   d.get("pose_coarse_knots", ()), d.get("pose_frame_t01", ()))
 
     def param_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
     def field_pose(self, cam_from_world: np.ndarray, time01: float) -> np.ndarray:
         """The pose in the field's world of a *recorded* frame whose telemetry pose (OpenCV
-        ``cam_from_world``) was taken at ``time01``: the learned drift correction applied, if any.
+        ``cam_from_world``) was taken at ``time01``: the learned drift correction applied, if any (with
+        the frame's own per-frame row when ``time01`` is a recorded frame's time).
         Novel poses built around the scene are already in the field's world; do not pass them here."""
         if self.pose_drift is None:
             return np.asarray(cam_from_world, dtype=np.float64)

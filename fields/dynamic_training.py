@@ -120,6 +120,13 @@ class DynamicFitConfig:
     #: over as long again (:func:`fields.pose_drift.warmup_scale`); 0: they learn from the first step,
     #: and on a random field they walk decimetres before there is a world to line the frames up to
     pose_delay: float = 0.1
+    #: on top of the knots, one correction per training frame (:class:`fields.pose_drift.PoseDrift`
+    #: ``frame_t01``), of what the knots cannot represent: the white per-frame jitter of telemetry poses
+    #: that knots a second apart cannot follow. Held-out frames get the knots alone. Same step sizes,
+    #: delay and penalty weight as the knots. Off: the rows line the training frames up (extended, 80 frames:
+    #: 1.00 -> 0.80 px) but held-out PSNR did not move (-0.05 dB on 80 frames, +0.07 on 300; one seed, 900 s;
+    #: bench/RESULTS.md, Table III session 19)
+    pose_per_frame: bool = False
     #: learn the correction even when every frame's pose was refined by SfM (``poses.json`` source
     #: "sfm"); off: such poses are taken as given. On SfM poses the knots cost held-out PSNR on both
     #: bench flights, both kinds: 80 frames stock 0.05 / extended 1.13 dB, 300 frames 0.84 / 0.70 dB
@@ -179,8 +186,9 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     sizing.reasoning.append(why)
     if cfg.kind == "kplanes-ext":
         sizing.reasoning.append(why_gate)
+    frame_t01 = dd.t01()[train_idx].tolist() if knots and cfg.pose_per_frame else []  # rows: training frames
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
-                         dd.t0_us, dd.span_us, pose_knots=knots, pose_coarse_knots=coarse)
+                         dd.t0_us, dd.span_us, pose_knots=knots, pose_coarse_knots=coarse, pose_frame_t01=frame_t01)
     return model, bounds, asdict(sizing)
 
 
@@ -208,6 +216,8 @@ def pose_knots(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[int, list[
     if coarse:
         why += ", plus coarser levels of " + ", ".join(
             f"{k} knots ({s:g} s)" for k, s in zip(coarse, cfg.pose_knot_coarse_s, strict=True))
+    if cfg.pose_per_frame:
+        why += "; one correction per training frame on top"
     if cfg.pose_delay > 0:
         why += f"; still for the first {cfg.pose_delay:.0%} of training, full step size from {2 * cfg.pose_delay:.0%}"
     return knots, coarse, why
@@ -219,8 +229,11 @@ def _optimizer(model: DynamicModel, cfg: DynamicFitConfig):
     pose_ids = {id(p) for p in drift.parameters()} if drift is not None else set()
     groups = [{"params": [p for p in model.parameters() if id(p) not in pose_ids], "base_lr": cfg.lr}]
     if drift is not None:
-        groups += [{"params": [drift.trans, *drift.coarse_trans], "base_lr": cfg.pose_lr_m, "pose": True},
-                   {"params": [drift.rot, *drift.coarse_rot], "base_lr": cfg.pose_lr_rad, "pose": True}]
+        rows = drift.frames > 0  # per-frame rows, if any, last in each group (older checkpoints have none)
+        groups += [{"params": [drift.trans, *drift.coarse_trans, *([drift.frame_trans] if rows else [])],
+                    "base_lr": cfg.pose_lr_m, "pose": True},
+                   {"params": [drift.rot, *drift.coarse_rot, *([drift.frame_rot] if rows else [])],
+                    "base_lr": cfg.pose_lr_rad, "pose": True}]
     for g in groups:
         g["lr"] = g["base_lr"]
     return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
@@ -309,6 +322,14 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     iw = importance_weights(cfg.batch_rays, n_box, len(train_idx) * hw, len(pos_frame), dev)
 
     enc = model.field.encoding
+    drift = model.pose_drift
+    row_of = None  # flight frame index -> the pose correction's per-frame row (training frames only)
+    if drift is not None and drift.frames:
+        if drift.frames != len(train_idx):
+            raise ValueError(f"the pose correction has {drift.frames} per-frame rows but the flight has "
+                             f"{len(train_idx)} training frames; drop --resume to start over")
+        row_of = torch.full((data.n,), -1, dtype=torch.long, device=dev)
+        row_of[train_t] = torch.arange(len(train_idx), device=dev)
 
     last_log = last_ckpt = 0.0
     interactive = sys.stderr.isatty()
@@ -330,8 +351,8 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
         o, d = bank.rays(fi, pi)
         cls = masks[fi, pi]
-        if model.pose_drift is not None:
-            o, d = model.pose_drift.apply(o, d, t01[fi])
+        if drift is not None:
+            o, d = drift.apply(o, d, t01[fi], None if row_of is None else row_of[fi])
             if cfg.pose_from_background:
                 o, d = background_pose_grad(o, d, cls == 0)
         target = images[fi, pi].float() / 255.0

@@ -23,6 +23,16 @@ one's. They add no new shapes of correction (the fine knots alone can take any o
 how the optimiser moves: a coarse knot pools the rays of every frame across its wider span, so the
 slow part of the drift gets a gradient with less noise, and the fine knots are left the residual
 (a hierarchical spline's preconditioning).
+
+Optional per-frame rows (``frame_t01``: the times of the frames that train) add one rotation vector
+and one translation per such frame on top of the knots: the white per-frame jitter of telemetry (a
+few cm, ~0.1 deg) that knots a second apart cannot follow. A row acts only through its part that the
+finest knots cannot represent: the rows minus their least-squares fit by the finest level's
+interpolation at the frames' times (:meth:`PoseDrift.frame_residual`). Without that, the rows of the
+training frames soaked up the slow drift too (many free rows learn it as fast as the knots), and a
+held-out frame, which has no row and gets the knots alone, lost what the knots did not learn: a
+synthetic test doubled the held-out miss distance. Poses are matched to their row by time
+(:meth:`PoseDrift.frame_row`); any other pose (a held-out frame, a novel view) gets the knots alone.
 """
 
 from __future__ import annotations
@@ -60,18 +70,36 @@ def rotate(rotvec: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 class PoseDrift(nn.Module):
     """``rot`` (K, 3): per knot a world-frame rotation vector (rad); ``trans`` (K, 3): a camera-centre
-    translation (ENU m); ``coarse_rot`` / ``coarse_trans``: the same for each coarser level (K_l, 3).
-    All start at zero (the telemetry poses); a frame's correction is the sum over the levels."""
+    translation (ENU m); ``coarse_rot`` / ``coarse_trans``: the same for each coarser level (K_l, 3);
+    ``frame_rot`` / ``frame_trans`` (F, 3): raw per-frame rows, when ``frame_t01`` gives the normalised
+    times of the F frames that have one (empty: none). All start at zero (the telemetry poses); a
+    frame's correction is the sum over the levels plus its row's residual (:meth:`frame_residual`)."""
 
-    def __init__(self, knots: int, coarse_knots: Sequence[int] = ()):
+    #: two normalised times closer than this are the same frame (1e-6 of a 10 min flight is 0.6 ms)
+    FRAME_TIME_TOL = 1e-6
+
+    def __init__(self, knots: int, coarse_knots: Sequence[int] = (), frame_t01: Sequence[float] = ()):
         super().__init__()
         for k in (knots, *coarse_knots):
             if int(k) != k or k < 2:
                 raise ValueError(f"every pose-drift level needs a whole number of at least 2 knots, got {k}")
+        times = torch.as_tensor(np.asarray(frame_t01, dtype=np.float64).reshape(-1))
+        if not bool(torch.isfinite(times).all()):
+            raise ValueError("per-frame pose corrections need finite frame times")
         self.rot = nn.Parameter(torch.zeros(knots, 3))
         self.trans = nn.Parameter(torch.zeros(knots, 3))
         self.coarse_rot = nn.ParameterList([nn.Parameter(torch.zeros(int(k), 3)) for k in coarse_knots])
         self.coarse_trans = nn.ParameterList([nn.Parameter(torch.zeros(int(k), 3)) for k in coarse_knots])
+        # without per-frame rows these are None, so the state dict is that of a knots-only drift
+        rows = len(times) > 0
+        self.register_buffer("frame_t01", times if rows else None)  # float64: matched to pose times to 1e-6
+        self.register_parameter("frame_rot", nn.Parameter(torch.zeros(len(times), 3)) if rows else None)
+        self.register_parameter("frame_trans", nn.Parameter(torch.zeros(len(times), 3)) if rows else None)
+        # the projection onto what the finest knots can represent at the frames' times: B (F, K) holds
+        # each frame's interpolation weights, fit = B @ (pinv(B) @ rows); derived from frame_t01, not saved
+        basis = _interpolation_matrix(times, knots) if rows else None
+        self.register_buffer("_row_basis", basis.float() if rows else None, persistent=False)
+        self.register_buffer("_row_basis_pinv", torch.linalg.pinv(basis).float() if rows else None, persistent=False)
 
     @property
     def knots(self) -> int:
@@ -82,27 +110,55 @@ class PoseDrift(nn.Module):
     def coarse_knots(self) -> list[int]:
         return [int(r.shape[0]) for r in self.coarse_rot]
 
-    def at(self, t01: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    @property
+    def frames(self) -> int:
+        """Recorded frames with a per-frame row (0: knots only)."""
+        return 0 if self.frame_rot is None else int(self.frame_rot.shape[0])
+
+    def frame_row(self, t01: float) -> int | None:
+        """The per-frame row of the recorded frame taken at ``t01``, or None (no frame at that time)."""
+        if not self.frames:
+            return None
+        gap = (self.frame_t01 - float(t01)).abs()
+        row = int(gap.argmin())
+        return row if float(gap[row]) <= self.FRAME_TIME_TOL else None
+
+    def frame_residual(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rows' effective corrections, rotation vectors and translations (F, 3) each: the raw rows
+        minus their least-squares fit by the finest knots' interpolation at the frames' times, so a row
+        holds only what the knots cannot (with no more frames than knots, nothing)."""
+        B, pinv = self._row_basis, self._row_basis_pinv
+        return self.frame_rot - B @ (pinv @ self.frame_rot), self.frame_trans - B @ (pinv @ self.frame_trans)
+
+    def at(self, t01: torch.Tensor, frame: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Rotation vectors (R, 3) and translations (R, 3) at times ``t01`` (R,), clamped to [0, 1]:
-        the sum of every level's linear interpolation between its two neighbouring knots."""
+        the sum of every level's linear interpolation between its two neighbouring knots, plus, with
+        ``frame`` (R,) per-frame row indices (long), those rows' residuals (:meth:`frame_residual`)."""
         rot, trans = _interpolate(self.rot, t01), _interpolate(self.trans, t01)
         for r, t in zip(self.coarse_rot, self.coarse_trans, strict=True):
             rot, trans = rot + _interpolate(r, t01), trans + _interpolate(t, t01)
+        if frame is not None and self.frames:
+            row_rot, row_trans = self.frame_residual()
+            rot, trans = rot + row_rot[frame], trans + row_trans[frame]
         return rot, trans
 
-    def apply(self, origins: torch.Tensor, dirs: torch.Tensor, t01: torch.Tensor
-              ) -> tuple[torch.Tensor, torch.Tensor]:
+    def apply(self, origins: torch.Tensor, dirs: torch.Tensor, t01: torch.Tensor,
+              frame: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Corrected rays: origins (camera centres, (R, 3) m) shifted, unit directions (R, 3)
-        rotated about the centre; both world ENU. Gradients reach the knots."""
-        rot, trans = self.at(t01)
+        rotated about the centre; both world ENU. ``frame`` (R,): each ray's per-frame row index (None:
+        the knots alone). Gradients reach the knots and the rows."""
+        rot, trans = self.at(t01, frame)
         return origins + trans, rotate(rot, dirs)
 
     @torch.no_grad()
     def correct_cam_from_world(self, cam_from_world: np.ndarray, t01: float) -> np.ndarray:
-        """The corrected OpenCV ``cam_from_world`` (4x4) of a telemetry pose taken at ``t01``."""
+        """The corrected OpenCV ``cam_from_world`` (4x4) of a telemetry pose taken at ``t01``; a recorded
+        frame's own row applies when ``t01`` is its time (:meth:`frame_row`)."""
         T = np.asarray(cam_from_world, dtype=np.float64)
         dev = self.rot.device
-        rot, trans = self.at(torch.tensor([float(t01)], device=dev))
+        row = self.frame_row(t01)
+        frame = None if row is None else torch.tensor([row], device=dev)
+        rot, trans = self.at(torch.tensor([float(t01)], device=dev), frame)
         R_wc = T[:3, :3].T
         centre = -R_wc @ T[:3, 3]
         cols = torch.from_numpy(R_wc.T.copy()).float().to(dev)  # rows = the camera axes in the world
@@ -122,20 +178,30 @@ class PoseDrift(nn.Module):
     def penalty(self, rot_scale_m: float = 30.0) -> torch.Tensor:
         """Mean squared correction in metres at the finest knots' times: translation, and rotation as
         the shift it causes at ``rot_scale_m`` range (keeps the gauge — a shift of field and all
-        poses together — anchored to the telemetry)."""
+        poses together — anchored to the telemetry); plus the same of the per-frame rows' residuals."""
         rot, trans = self._at_knots()
-        return trans.square().sum(-1).mean() + (rot_scale_m ** 2) * rot.square().sum(-1).mean()
+        out = trans.square().sum(-1).mean() + (rot_scale_m ** 2) * rot.square().sum(-1).mean()
+        if self.frames:
+            row_rot, row_trans = self.frame_residual()
+            out = out + row_trans.square().sum(-1).mean() + (rot_scale_m ** 2) * row_rot.square().sum(-1).mean()
+        return out
 
     def summary(self) -> dict:
         """Size of the learned corrections at the finest knots' times: RMS / max translation (m) and
-        rotation (deg); the knot count of each level."""
+        rotation (deg); the knot count of each level; with per-frame rows, their count and their
+        residuals' RMS translation (m) and rotation (deg)."""
         with torch.no_grad():
             rot, trans = self._at_knots()
             t = trans.norm(dim=-1)
             r = torch.rad2deg(rot.norm(dim=-1))
-        return {"knots": self.knots, "coarse_knots": self.coarse_knots,
-                "trans_rms_m": float(t.square().mean().sqrt()), "trans_max_m": float(t.max()),
-                "rot_rms_deg": float(r.square().mean().sqrt()), "rot_max_deg": float(r.max())}
+            out = {"knots": self.knots, "coarse_knots": self.coarse_knots,
+                   "trans_rms_m": float(t.square().mean().sqrt()), "trans_max_m": float(t.max()),
+                   "rot_rms_deg": float(r.square().mean().sqrt()), "rot_max_deg": float(r.max())}
+            if self.frames:
+                row_rot, row_trans = self.frame_residual()
+                out.update(frames=self.frames, frame_trans_rms_m=float(row_trans.norm(dim=-1).square().mean().sqrt()),
+                           frame_rot_rms_deg=float(torch.rad2deg(row_rot.norm(dim=-1)).square().mean().sqrt()))
+        return out
 
 
 def _interpolate(knots: torch.Tensor, t01: torch.Tensor) -> torch.Tensor:
@@ -145,6 +211,12 @@ def _interpolate(knots: torch.Tensor, t01: torch.Tensor) -> torch.Tensor:
     i0 = x.floor().long().clamp(max=n - 2)
     w = (x - i0.to(x.dtype))[:, None]
     return knots[i0] * (1 - w) + knots[i0 + 1] * w
+
+
+def _interpolation_matrix(t01: torch.Tensor, knots: int) -> torch.Tensor:
+    """(R, K) float64: row r holds the weights :func:`_interpolate` gives the K knots at time ``t01[r]``."""
+    eye = torch.eye(knots, dtype=torch.float64)
+    return _interpolate(eye, t01.double())
 
 
 def warmup_scale(progress: float, delay: float) -> float:

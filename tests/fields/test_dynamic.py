@@ -430,6 +430,35 @@ def test_fit_with_pose_drift_moves_the_knots_and_round_trips(dynamic_flight, tmp
     assert no_drift.pose_drift is None and np.array_equal(no_drift.field_pose(T, 0.3), T)
 
 
+def test_fit_with_per_frame_pose_rows_trains_the_training_frames_rows_only(dynamic_flight, tmp_path):
+    """pose_per_frame: one row per training frame; the rows learn, survive save -> load -> resume; a
+    training frame's field pose includes its row, a held-out frame's is the knots' alone."""
+    from fields.pose_drift import PoseDrift
+
+    dd = load_dynamic_flight(dynamic_flight)
+    cfg = DynamicFitConfig(kind="kplanes-ext", pose_knot_s=2.0, pose_per_frame=True, pose_delay=0.0,
+                           **{**TINY, "iters": 4})
+    train_idx, val_idx = split(dd, cfg.holdout_every)
+    r = fit_dynamic(dd, cfg, out_dir=tmp_path)
+    drift = r.model.pose_drift
+    assert drift.frames == len(train_idx) and np.allclose(drift.frame_t01.numpy(), dd.t01()[train_idx])
+    assert torch.isfinite(drift.frame_trans).all() and float(drift.frame_residual()[1].detach().abs().max()) > 0
+    assert any("one correction per training frame" in line for line in r.sizing["reasoning"])
+    model, _ = load_dynamic_checkpoint(tmp_path / "dynamic.pt", "cpu")
+    assert torch.equal(model.pose_drift.frame_trans, drift.frame_trans)
+    knots_only = PoseDrift(drift.knots, drift.coarse_knots)
+    knots_only.load_state_dict({k: v for k, v in drift.state_dict().items() if not k.startswith("frame_")})
+    t01 = dd.t01()
+    for i in (train_idx[1], val_idx[1]):
+        T = dd.data.cam_from_world[i]
+        same = np.allclose(model.field_pose(T, float(t01[i])), knots_only.correct_cam_from_world(T, float(t01[i])),
+                           atol=1e-9)
+        assert same == (i in val_idx)
+    again = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", pose_knot_s=2.0, pose_per_frame=True,
+                                             **{**TINY, "iters": 6}), out_dir=tmp_path, resume=True)
+    assert again.step == 6 and again.model.pose_drift.frames == len(train_idx)
+
+
 def test_fit_with_coarse_pose_knot_levels_moves_every_level_and_round_trips(dynamic_flight, tmp_path):
     """A 2 s level under the 1 s knots: both levels learn, fit.json says why, the checkpoint keeps both."""
     from fields.dynamic_training import pose_knots
