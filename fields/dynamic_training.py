@@ -229,11 +229,8 @@ def _optimizer(model: DynamicModel, cfg: DynamicFitConfig):
     pose_ids = {id(p) for p in drift.parameters()} if drift is not None else set()
     groups = [{"params": [p for p in model.parameters() if id(p) not in pose_ids], "base_lr": cfg.lr}]
     if drift is not None:
-        rows = drift.frames > 0  # per-frame rows, if any, last in each group (older checkpoints have none)
-        groups += [{"params": [drift.trans, *drift.coarse_trans, *([drift.frame_trans] if rows else [])],
-                    "base_lr": cfg.pose_lr_m, "pose": True},
-                   {"params": [drift.rot, *drift.coarse_rot, *([drift.frame_rot] if rows else [])],
-                    "base_lr": cfg.pose_lr_rad, "pose": True}]
+        groups += [{"params": drift.translation_params(), "base_lr": cfg.pose_lr_m, "pose": True},
+                   {"params": drift.rotation_params(), "base_lr": cfg.pose_lr_rad, "pose": True}]
     for g in groups:
         g["lr"] = g["base_lr"]
     return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)

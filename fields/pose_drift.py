@@ -110,6 +110,14 @@ class PoseDrift(nn.Module):
     def coarse_knots(self) -> list[int]:
         return [int(r.shape[0]) for r in self.coarse_rot]
 
+    def translation_params(self) -> list[nn.Parameter]:
+        """Every translation parameter (m): the finest knots, the coarser levels, the rows if any."""
+        return [self.trans, *self.coarse_trans, *([self.frame_trans] if self.frames else [])]
+
+    def rotation_params(self) -> list[nn.Parameter]:
+        """Every rotation-vector parameter (rad), in the same order as :meth:`translation_params`."""
+        return [self.rot, *self.coarse_rot, *([self.frame_rot] if self.frames else [])]
+
     @property
     def frames(self) -> int:
         """Recorded frames with a per-frame row (0: knots only)."""
