@@ -419,12 +419,14 @@ def _extra(bounds, sizing, curve, gen) -> dict:
 
 
 def evaluate_dynamic(model: DynamicModel, dd: DynamicFlightData, indices: list[int], min_box_px: float = 6.0,
-                     out_dir: Path | None = None) -> dict:
+                     out_dir: Path | None = None, poses: dict[int, np.ndarray] | None = None) -> dict:
     """Held-out PSNR / SSIM of frames rendered at their own pose and time (mean appearance), PSNR
     inside the person boxes (``box_psnr``: where the scene moves) and outside them (``bg_psnr``:
     the static background), the boxes' pixel fraction, and the mask's boxes (synthesis rules,
     ``boxes_from_probabilities``): IoU of the best box per label box >= ``min_box_px``, and recall /
-    precision at IoU >= 0.5 (same class) for people >= ``min_box_px`` tall."""
+    precision at IoU >= 0.5 (same class) for people >= ``min_box_px`` tall. ``poses``: frame index ->
+    OpenCV ``cam_from_world`` in the field's world to render that frame at instead (e.g. aligned by
+    :func:`fields.heldout_poses.align_heldout_poses`); other frames get their drift-corrected telemetry pose."""
     import cv2
 
     data = dd.data
@@ -433,7 +435,8 @@ def evaluate_dynamic(model: DynamicModel, dd: DynamicFlightData, indices: list[i
     agreement = None  # synthesis-style matching: IoU >= 0.5, same class, people >= min_box_px tall
     for i in indices:
         # a recorded frame: at its telemetry pose, drift-corrected when the model learned a correction
-        r = model.render_image(data.camera, model.field_pose(data.cam_from_world[i], float(t01[i])), float(t01[i]))
+        pose = poses[i] if poses and i in poses else model.field_pose(data.cam_from_world[i], float(t01[i]))
+        r = model.render_image(data.camera, pose, float(t01[i]))
         gt = data.images[i].numpy()
         row = {"frame": data.names[i], "t01": float(t01[i]), "psnr": psnr(r["rgb"], gt), "ssim": ssim(r["rgb"], gt)}
         inside = data.masks[i].numpy() > 0

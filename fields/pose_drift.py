@@ -68,6 +68,23 @@ def rotate(rotvec: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return v + a * wxv + b * torch.cross(rotvec.expand_as(v), wxv, dim=-1)
 
 
+@torch.no_grad()
+def corrected_cam_from_world(cam_from_world: np.ndarray, rotvec: torch.Tensor, trans: torch.Tensor) -> np.ndarray:
+    """OpenCV ``cam_from_world`` (4x4) after a world-frame correction: the camera's axes rotated by
+    ``rotvec`` (3,) (rad, about the camera centre) and its centre shifted by ``trans`` (3,) (ENU m), the
+    same correction :meth:`PoseDrift.apply` makes to the camera's rays."""
+    T = np.asarray(cam_from_world, dtype=np.float64)
+    R_wc = T[:3, :3].T
+    centre = -R_wc @ T[:3, 3]
+    cols = torch.from_numpy(R_wc.T.copy()).to(rotvec)  # rows = the camera axes in the world
+    R_new = rotate(rotvec.reshape(1, 3).expand(3, 3), cols).double().cpu().numpy().T  # columns rotated
+    c_new = centre + trans.reshape(3).double().cpu().numpy()
+    out = np.eye(4)
+    out[:3, :3] = R_new.T
+    out[:3, 3] = -R_new.T @ c_new
+    return out
+
+
 class PoseDrift(nn.Module):
     """``rot`` (K, 3): per knot a world-frame rotation vector (rad); ``trans`` (K, 3): a camera-centre
     translation (ENU m); ``coarse_rot`` / ``coarse_trans``: the same for each coarser level (K_l, 3);
@@ -167,15 +184,7 @@ class PoseDrift(nn.Module):
         row = self.frame_row(t01)
         frame = None if row is None else torch.tensor([row], device=dev)
         rot, trans = self.at(torch.tensor([float(t01)], device=dev), frame)
-        R_wc = T[:3, :3].T
-        centre = -R_wc @ T[:3, 3]
-        cols = torch.from_numpy(R_wc.T.copy()).float().to(dev)  # rows = the camera axes in the world
-        R_new = rotate(rot.expand(3, 3), cols).double().cpu().numpy().T  # columns rotated
-        c_new = centre + trans[0].double().cpu().numpy()
-        out = np.eye(4)
-        out[:3, :3] = R_new.T
-        out[:3, 3] = -R_new.T @ c_new
-        return out
+        return corrected_cam_from_world(T, rot[0], trans[0])
 
     def _at_knots(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The summed correction at the finest level's knot times, (K, 3) each."""
