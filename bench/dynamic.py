@@ -15,14 +15,22 @@ with ``--set pose_drift_on_sfm=true``). ``--sfm``: first refine the noisy teleme
 telemetry priors, every frame, as ``uavsim poses`` does on a recorded flight; cached as a copy of the
 flight folder with suffix ``_sfm``): the paper's set-up, whose poses came from COLMAP.
 
+Held-out frames carry their own white pose jitter, which no field can know; ``--align-steps`` (default
+150) therefore also reports held-out PSNR after each held-out frame's pose is aligned to the frozen
+field on its background pixels (fields.heldout_poses; the BARF / NeRF-- / CamP protocol), next to the
+plain number, never instead of it. ``--save-fits DIR`` keeps each kind's checkpoint; ``--load-fits DIR``
+evaluates kept checkpoints again (no training; e.g. with other alignment options).
+
     uavsim bench dynamic -- [--budget-s 300] [--frames 80] [--width 160] [--json OUT]
     uavsim bench dynamic -- --kinds kplanes --set features=32   # one option changed for both kinds
     uavsim bench dynamic -- --frames 300 --sfm                   # on SfM-refined poses
+    uavsim bench dynamic -- --frames 300 --load-fits DIR --align-steps 300   # re-evaluate kept fits
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -194,9 +202,13 @@ def main() -> None:
     ap.add_argument("--sfm", action="store_true", help="refine the noisy poses with SfM first (cached)")
     ap.add_argument("--save-fits", type=Path, default=None,
                     help="keep each kind's final checkpoint in DIR/KIND/ (default: not kept)")
+    ap.add_argument("--load-fits", type=Path, default=None,
+                    help="evaluate the checkpoints DIR/KIND/dynamic.pt (from --save-fits) instead of training")
     ap.add_argument("--align-steps", type=int, default=150,
                     help="also report held-out PSNR after aligning each held-out frame's pose to the frozen field "
                          "(fields.heldout_poses; Adam steps over all held-out frames, 0: off)")
+    ap.add_argument("--align-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="an AlignmentOptions option (batch_rays=4096, lr_m=0.004), repeatable")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a DynamicFitConfig option for both kinds, value as JSON (features=32, gate=false, "
                          "mask_init_background=null), repeatable")
@@ -205,11 +217,19 @@ def main() -> None:
     import torch
 
     from fields.dynamic_data import load_dynamic_flight
-    from fields.dynamic_training import DynamicFitConfig, evaluate_dynamic, fit_dynamic, split
+    from fields.dynamic_training import (
+        DynamicFitConfig,
+        DynamicFitResult,
+        evaluate_dynamic,
+        fit_dynamic,
+        load_dynamic_checkpoint,
+        split,
+    )
     from fields.heldout_poses import AlignmentOptions, align_flight_frames
 
     setup_torch(args.threads)
     overrides = dict(parse_setting(item) for item in args.set)
+    align_options = AlignmentOptions(**{"steps": args.align_steps, **dict(parse_setting(i) for i in args.align_set)})
     jitter = (args.jitter_m, args.jitter_deg)
     tag = "" if jitter == (0.05, 0.15) else f"_jit{args.jitter_m:g}m{args.jitter_deg:g}deg"
     tag += "" if args.drift_scale == 1.0 else f"_drift{args.drift_scale:g}"
@@ -229,17 +249,25 @@ def main() -> None:
     for kind in args.kinds.split(","):
         cfg = DynamicFitConfig(kind=kind, budget_s=args.budget_s, iters=10**9, threads=args.threads,
                                checkpoint_every_s=1e9, **overrides)
-        r = fit_dynamic(dd, cfg, out_dir=args.save_fits / kind if args.save_fits else None, flight=flight)
+        if args.load_fits:
+            model, ck = load_dynamic_checkpoint(args.load_fits / kind / "dynamic.pt")
+            if ck["fit_config"]["budget_s"] != args.budget_s:
+                raise SystemExit(f"{args.load_fits / kind}: fitted with --budget-s {ck['fit_config']['budget_s']:g}, "
+                                 f"not {args.budget_s:g}")
+            r = DynamicFitResult(model, ck["step"], ck["train_s"], ck.get("curve") or [])
+        else:
+            r = fit_dynamic(dd, cfg, out_dir=args.save_fits / kind if args.save_fits else None, flight=flight)
         t_e = time.perf_counter()
         ev = evaluate_dynamic(r.model, dd, val_idx, out_dir=OUT_DIR / f"dynamic_{kind}{tag}_heldout")
         aligned = None
         if args.align_steps > 0:
             t_a = time.perf_counter()
-            poses_aligned, report = align_flight_frames(r.model, dd, val_idx, AlignmentOptions(steps=args.align_steps))
+            poses_aligned, report = align_flight_frames(r.model, dd, val_idx, align_options)
             ev_a = evaluate_dynamic(r.model, dd, val_idx, poses=poses_aligned)
             aligned = {"psnr": ev_a["psnr"], "ssim": ev_a["ssim"], "box_psnr": ev_a["box_psnr"],
                        "bg_psnr": ev_a["bg_psnr"], "box_iou_mean": ev_a["box_iou_mean"],
-                       "alignment": report, "seconds": round(time.perf_counter() - t_a, 1),
+                       "alignment": {**report, "options": dataclasses.asdict(align_options)},
+                       "seconds": round(time.perf_counter() - t_a, 1),
                        "per_frame_psnr": [round(f["psnr"], 3) for f in ev_a["frames"]]}
         n = r.model.param_count()
         truth = flight.with_name(flight.name + ".truth.json")
@@ -280,7 +308,7 @@ def main() -> None:
     payload = {"flight": str(flight), "frames": dd.n, "train_frames": len(train_idx), "val_frames": len(val_idx),
                "width": dd.data.camera.width, "height": dd.data.camera.height, "budget_s": args.budget_s,
                "jitter_m": args.jitter_m, "jitter_deg": args.jitter_deg, "drift_scale": args.drift_scale,
-               "sfm": args.sfm,
+               "sfm": args.sfm, "loaded_fits": str(args.load_fits) if args.load_fits else None,
                "load_start": load_start, "load_end": load_avg(), "results": results,
                "threads": torch.get_num_threads(), "overrides": overrides}
     if "kplanes" in results:

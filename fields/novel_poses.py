@@ -231,3 +231,23 @@ def dynamic_novel_poses(entries: list[PoseEntry], n_points: int, frame_rate_hz: 
             out.append(PoseEntry(None, e.t_unix_us + k * dt_us, e.cam_from_world.copy(), "novel",
                                  extra={"from_frame": e.frame, "dt_steps": k}))
     return out
+
+
+def raised_along_axis(cam_from_world: np.ndarray, scale: float, ground_z: float = 0.0) -> np.ndarray:
+    """The camera moved back along its optical axis until its distance to the ground point (plane
+    ``z = ground_z``) on that axis is ``scale`` times larger, same attitude: the same ground point in
+    the centre, seen from higher up (scale 2 from 15 m above the ground: 30 m). OpenCV
+    ``cam_from_world``, ENU metres."""
+    T = np.asarray(cam_from_world, dtype=np.float64)
+    if not np.isfinite(T).all() or not np.isfinite(scale) or scale <= 0:
+        raise ValueError(f"need a finite pose and a positive scale, got scale {scale}")
+    R = T[:3, :3]
+    centre = -R.T @ T[:3, 3]
+    axis = R[2]  # the optical axis (camera +z) in the world
+    if axis[2] >= -1e-6 or centre[2] <= ground_z:
+        raise ValueError("the camera does not look down at the ground from above it")
+    reach = (ground_z - centre[2]) / axis[2]
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = -R @ (centre - axis * reach * (scale - 1.0))
+    return out

@@ -107,3 +107,16 @@ def alignment_report(camera: Camera, reference: tuple[Sequence[np.ndarray], Sequ
         report[name] = {"median_px": float(np.nanmedian(px)), "mean_px": float(np.nanmean(px)),
                         "p90_px": float(np.nanpercentile(px, 90))}
     return report
+
+
+def field_pose_from_true(true_cam_from_world: np.ndarray, similarity: np.ndarray) -> np.ndarray:
+    """The OpenCV ``cam_from_world`` in the field's world of a camera whose true pose (true ENU) is
+    ``true_cam_from_world``, the worlds related by ``similarity`` (:func:`fit_world_similarity`,
+    ``X_true = s R X_field + t``): a field point projects to the pixel its true counterpart does.
+    Rigid: the scale ``s`` divides the translation (camera coordinates scaled by ``s`` project alike)."""
+    s, R, t = _similarity(np.asarray(similarity, dtype=np.float64))
+    Q = np.asarray(true_cam_from_world, dtype=np.float64)
+    out = np.eye(4)
+    out[:3, :3] = Q[:3, :3] @ R
+    out[:3, 3] = (Q[:3, :3] @ t + Q[:3, 3]) / s
+    return out

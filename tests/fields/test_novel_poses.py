@@ -8,6 +8,7 @@ from fields.novel_poses import (
     dynamic_novel_poses,
     observed_region,
     outside_fraction,
+    raised_along_axis,
     scene_centre,
     static_novel_poses,
 )
@@ -97,3 +98,25 @@ def test_dynamic_edge_cases():
         dynamic_novel_poses(unposed, 3, 30.0)
     with pytest.raises(ValueError, match="frame rate"):
         dynamic_novel_poses(_entries([5]), 3, 0.0)
+
+
+@pytest.mark.parametrize("target", [[8.66, 0.0, 0.0], [0.0, 0.0, 0.0], [3.0, -2.0, 0.0]])
+def test_raised_along_axis_keeps_the_ground_point_and_attitude(target):
+    """Oblique (60 deg down), nadir and a third view: twice the distance, the same centre pixel."""
+    T = look_at(np.array([0.0, 0.0, 15.0]), np.array(target), up_enu=(1.0, 0.0, 0.0))
+    up = raised_along_axis(T, 2.0)
+    assert np.allclose(up[:3, :3], T[:3, :3])
+    assert camera_center(up)[2] == pytest.approx(30.0)
+    assert np.linalg.norm(camera_center(up) - target) == pytest.approx(2 * np.linalg.norm(camera_center(T) - target))
+    assert np.allclose(raised_along_axis(T, 1.0), T)
+
+
+def test_raised_along_axis_rejects_a_camera_that_does_not_look_down():
+    level = look_at(np.array([0.0, 0.0, 15.0]), np.array([10.0, 0.0, 15.0]))
+    with pytest.raises(ValueError, match="look down"):
+        raised_along_axis(level, 2.0)
+    below = look_at(np.array([0.0, 0.0, -1.0]), np.array([3.0, 0.0, -5.0]))
+    with pytest.raises(ValueError, match="look down"):
+        raised_along_axis(below, 2.0)
+    with pytest.raises(ValueError, match="positive scale"):
+        raised_along_axis(look_at(np.array([0.0, 0.0, 15.0]), np.array([1.0, 0.0, 0.0])), float("nan"))

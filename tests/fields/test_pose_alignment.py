@@ -5,7 +5,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fields.pose_alignment import alignment_report, fit_world_similarity, ground_points, misregistration_px
+from fields.pose_alignment import (
+    alignment_report,
+    field_pose_from_true,
+    fit_world_similarity,
+    ground_points,
+    misregistration_px,
+)
 from telemetry.camera import Camera
 from telemetry.frames import look_at
 
@@ -37,6 +43,26 @@ def test_poses_off_by_one_similarity_line_up_exactly():
     assert rep["all"]["mean_px"] < 1e-3
     assert rep["similarity"]["scale"] == pytest.approx(1.05, rel=1e-4)
     assert rep["similarity"]["shift_m"] == pytest.approx([3.0, -1.0, 1.2], abs=1e-3)
+
+
+def test_a_true_pose_maps_into_the_field_world_through_the_fitted_similarity():
+    """A novel true camera mapped with the similarity fitted on other frames is the field's camera
+    that sees the field points at the pixels where the true camera sees their true counterparts."""
+    truth = pass_poses()
+    R = Rotation.from_rotvec([0.01, -0.02, 0.03]).as_matrix()
+    s, t = 1.05, np.array([3.0, -1.0, 1.2])
+    field = [moved(T, s, R, t) for T in truth]
+    sim = fit_world_similarity(CAMERA, field, truth)
+    novel = look_at([5.0, 3.0, 40.0], [9.0, 1.0, 0.0])  # 40 m: higher than any frame it was fitted on
+    P = field_pose_from_true(novel, sim)
+    assert np.allclose(P, moved(novel, s, R, t), atol=1e-5)
+    assert np.allclose(P[:3, :3] @ P[:3, :3].T, np.eye(3), atol=1e-9)
+    X_true = np.array([[8.0, 1.0, 0.0], [12.0, -3.0, 1.7]])
+    X_field = (X_true - t) @ R / s
+    uv_true, _ = CAMERA.project_world(X_true, novel)
+    uv_field, _ = CAMERA.project_world(X_field, P)
+    assert np.allclose(uv_field, uv_true, atol=1e-3)
+    assert np.allclose(field_pose_from_true(novel, np.zeros(7)), novel)
 
 
 def test_one_shifted_nadir_frame_is_off_by_focal_times_shift_over_height():

@@ -1,0 +1,116 @@
+"""Dynamic fields at novel high-altitude views and their geometry, against simulator truth.
+
+Held-out PSNR on a straight pass (bench/dynamic.py, the paper's Table III) asks a field to interpolate
+between neighbouring training views; a field that paints the scene on a sheet in the air can pass that
+test. Synthesis (issue 8, Table IV) renders the field from *higher* poses, where such a sheet shows.
+This bench takes fits kept by ``bench/dynamic.py --save-fits DIR`` and, for every ``--every``-th
+held-out frame (time order), measures:
+
+- **geometry**: the field's expected depth at the frame's own pose against the true distance to the
+  ground plane (z = 0) along each background pixel's ray (outside the person boxes): the median
+  relative error and the share of pixels more than 10 % off (a sheet in the air is far off);
+- **novel view**: the frame's true camera moved back along its optical axis until its distance to the
+  ground point it looks at is ``--scale`` times larger (2: 15 m -> 30 m altitude), rendered by the
+  simulator at the frame's scene time (truth, supersample 2) and by the field at that pose mapped into
+  its world by the similarity that lines up its training frames with the true ones
+  (:func:`fields.pose_alignment.fit_world_similarity`); PSNR over the frame and over the pixels whose
+  ground point >= 2 training frames saw (``covered``), SSIM over the frame.
+
+    uavsim bench dynamic_novel -- --frames 300 --fits DIR [--scale 2] [--every 5] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from bench._common import write_json  # noqa: E402
+from bench.dynamic import flight_dir, setup_torch  # noqa: E402
+from bench.fields import covered_mask, rays_to_ground  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--fits", type=Path, required=True, help="DIR of bench/dynamic.py --save-fits DIR (DIR/KIND/)")
+    ap.add_argument("--frames", type=int, default=80)
+    ap.add_argument("--width", type=int, default=160)
+    ap.add_argument("--flight", type=Path, default=None, help="flight folder (default: bench/dynamic.py's)")
+    ap.add_argument("--world-seed", type=int, default=0, help="the simulator world of the flight (bench default 0)")
+    ap.add_argument("--kinds", default="kplanes,kplanes-ext")
+    ap.add_argument("--scale", type=float, default=2.0, help="novel view's distance to the ground / the frame's")
+    ap.add_argument("--every", type=int, default=5, help="every k-th held-out frame")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+
+    from fields.dynamic_data import load_dynamic_flight
+    from fields.dynamic_training import load_dynamic_checkpoint, split
+    from fields.evaluation import psnr, ssim
+    from fields.novel_poses import raised_along_axis
+    from fields.pose_alignment import field_pose_from_true, fit_world_similarity
+    from sim.world import make_world
+
+    setup_torch(args.threads)
+    flight = args.flight or flight_dir(args.width, args.frames)
+    dd = load_dynamic_flight(flight)
+    cam = dd.data.camera
+    t01 = dd.t01()
+    train_idx, val_idx = split(dd, 2)
+    truth_file = flight.with_name(flight.name + ".truth.json")
+    truth_rows = {f["frame"]: f for f in json.loads(truth_file.read_text())["frames"]}
+    true_pose = {i: np.asarray(truth_rows[dd.data.names[i]]["cam_from_world"]) for i in range(dd.n)}
+    picked = val_idx[:: max(args.every, 1)]
+    world = make_world(seed=args.world_seed, dynamic=True)
+    t0 = time.perf_counter()
+    novel, truth_rgb, covered = {}, {}, {}
+    train_true = [true_pose[i] for i in train_idx]
+    for i in picked:
+        novel[i] = raised_along_axis(true_pose[i], args.scale)
+        truth_rgb[i] = world.render(cam, novel[i], t=float(truth_rows[dd.data.names[i]]["t_scene_s"]),
+                                    supersample=2).rgb
+        covered[i] = covered_mask(cam, novel[i], train_true)
+    print(f"{flight.name}: {len(picked)} held-out frames, truth views at {args.scale:g}x the distance rendered "
+          f"in {time.perf_counter() - t0:.0f} s", flush=True)
+    results = {}
+    for kind in args.kinds.split(","):
+        model, ck = load_dynamic_checkpoint(args.fits / kind / "dynamic.pt", "cpu")
+        sim = fit_world_similarity(cam, [model.field_pose(dd.data.cam_from_world[i], float(t01[i])) for i in train_idx],
+                                   train_true)
+        scale = float(np.exp(sim[6]))
+        rows = []
+        for i in picked:
+            own = model.render_image(cam, model.field_pose(dd.data.cam_from_world[i], float(t01[i])), float(t01[i]),
+                                     with_mask=False)
+            _, _, true_depth = rays_to_ground(cam, true_pose[i])
+            valid = np.isfinite(true_depth) & (dd.data.masks[i].numpy().reshape(-1) == 0)
+            rel = np.abs(own["depth"].reshape(-1) * scale - true_depth)[valid] / true_depth[valid]
+            r = model.render_image(cam, field_pose_from_true(novel[i], sim), float(t01[i]), with_mask=False)
+            rows.append({"frame": dd.data.names[i], "depth_rel_median": float(np.median(rel)),
+                         "depth_off_10pct": float(np.mean(rel > 0.10)),
+                         "novel_psnr": psnr(r["rgb"], truth_rgb[i]),
+                         "novel_psnr_covered": psnr(r["rgb"], truth_rgb[i], covered[i]),
+                         "novel_ssim": ssim(r["rgb"], truth_rgb[i])})
+        mean = {k: float(np.nanmean([row[k] for row in rows])) for k in rows[0] if k != "frame"}
+        results[kind] = {**mean, "steps": ck["step"], "train_s": ck["train_s"], "similarity_scale": scale,
+                         "frames": rows}
+        print(f"{kind}: depth off by {100 * mean['depth_rel_median']:.1f} % (median; "
+              f"{100 * mean['depth_off_10pct']:.0f} % of pixels > 10 % off); at {args.scale:g}x the distance "
+              f"PSNR {mean['novel_psnr']:.2f} dB (covered {mean['novel_psnr_covered']:.2f}), SSIM "
+              f"{mean['novel_ssim']:.3f}", flush=True)
+    payload = {"flight": str(flight), "fits": str(args.fits), "scale": args.scale, "every": args.every,
+               "frames": [dd.data.names[i] for i in picked], "results": results}
+    path = write_json(f"dynamic_novel_{args.frames}f", payload, args.json)
+    print(f"wrote {path}; total {time.perf_counter() - t0:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
