@@ -14,9 +14,10 @@ held-out frame (time order), measures:
   simulator at the frame's scene time (truth, supersample 2) and by the field at that pose mapped into
   its world by the similarity that lines up its training frames with the true ones
   (:func:`fields.pose_alignment.fit_world_similarity`); PSNR over the frame and over the pixels whose
-  ground point >= 2 training frames saw (``covered``), SSIM over the frame.
+  ground point >= 2 training frames saw (``covered``), SSIM over the frame. ``--out DIR``: the views
+  side by side (truth, then each kind).
 
-    uavsim bench dynamic_novel -- --frames 300 --fits DIR [--scale 2] [--every 5] [--json OUT]
+    uavsim bench dynamic_novel -- --frames 300 --fits DIR [--scale 2] [--every 5] [--json OUT] [--out DIR]
 """
 
 from __future__ import annotations
@@ -50,6 +51,8 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=5, help="every k-th held-out frame")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--out", type=Path, default=None,
+                    help="also write FRAME_novel.png per frame: truth | each kind's render, left to right")
     args = ap.parse_args()
 
     from fields.dynamic_data import load_dynamic_flight
@@ -80,7 +83,7 @@ def main() -> None:
         covered[i] = covered_mask(cam, novel[i], train_true)
     print(f"{flight.name}: {len(picked)} held-out frames, truth views at {args.scale:g}x the distance rendered "
           f"in {time.perf_counter() - t0:.0f} s", flush=True)
-    results = {}
+    results, renders = {}, {i: [truth_rgb[i]] for i in picked}
     for kind in args.kinds.split(","):
         model, ck = load_dynamic_checkpoint(args.fits / kind / "dynamic.pt", "cpu")
         sim = fit_world_similarity(cam, [model.field_pose(dd.data.cam_from_world[i], float(t01[i])) for i in train_idx],
@@ -94,6 +97,7 @@ def main() -> None:
             valid = np.isfinite(true_depth) & (dd.data.masks[i].numpy().reshape(-1) == 0)
             rel = np.abs(own["depth"].reshape(-1) * scale - true_depth)[valid] / true_depth[valid]
             r = model.render_image(cam, field_pose_from_true(novel[i], sim), float(t01[i]), with_mask=False)
+            renders[i].append((np.clip(r["rgb"], 0, 1) * 255).round().astype(np.uint8))
             rows.append({"frame": dd.data.names[i], "depth_rel_median": float(np.median(rel)),
                          "depth_off_10pct": float(np.mean(rel > 0.10)),
                          "novel_psnr": psnr(r["rgb"], truth_rgb[i]),
@@ -106,6 +110,13 @@ def main() -> None:
               f"{100 * mean['depth_off_10pct']:.0f} % of pixels > 10 % off); at {args.scale:g}x the distance "
               f"PSNR {mean['novel_psnr']:.2f} dB (covered {mean['novel_psnr_covered']:.2f}), SSIM "
               f"{mean['novel_ssim']:.3f}", flush=True)
+    if args.out:
+        import cv2
+
+        args.out.mkdir(parents=True, exist_ok=True)
+        for i, row in renders.items():
+            cv2.imwrite(str(args.out / f"{Path(dd.data.names[i]).stem}_novel.png"),
+                        cv2.cvtColor(np.concatenate(row, axis=1), cv2.COLOR_RGB2BGR))
     payload = {"flight": str(flight), "fits": str(args.fits), "scale": args.scale, "every": args.every,
                "frames": [dd.data.names[i] for i in picked], "results": results}
     path = write_json(f"dynamic_novel_{args.frames}f", payload, args.json)

@@ -6,13 +6,14 @@ count or wall-clock budget. Rays are drawn uniformly over (training frame, pixel
 so the objective stays the uniform one; each ray carries its frame's normalised time and whether
 its pixel lies inside a labelled person box ("dynamic").
 
-Losses (both kinds): MSE on RGB; ``lambda_dist`` x distortion; ``lambda_mask`` x the class-mask NLL
-(filled boxes, as the static fit, for synthesis); K-Planes regularisers ``lambda_tv`` x spatial
-plane total variation, ``lambda_time_smooth`` x second difference along t, ``lambda_time_l1`` x
-L1 of the time planes towards 1. Extended only: ``lambda_dynamic`` x BCE of the rendered time-plane
-mask channel against the box mask, ``lambda_cos`` x ``L_cos`` between static and dynamic spatial
-plane features at the samples, and mask-gated gradients (static pixels update static planes only,
-dynamic pixels dynamic planes only; :func:`fields.kplanes.gate_grad`).
+Losses (both kinds): MSE on RGB; ``lambda_dist`` x distortion; ``lambda_empty`` x density in the air
+(off by default); ``lambda_mask`` x the class-mask NLL (filled boxes, as the static fit, for
+synthesis); K-Planes regularisers ``lambda_tv`` x spatial plane total variation,
+``lambda_time_smooth`` x second difference along t, ``lambda_time_l1`` x L1 of the time planes
+towards 1. Extended only: ``lambda_dynamic`` x BCE of the rendered time-plane mask channel against
+the box mask, ``lambda_cos`` x ``L_cos`` between static and dynamic spatial plane features at the
+samples, and mask-gated gradients (static pixels update static planes only, dynamic pixels dynamic
+planes only; :func:`fields.kplanes.gate_grad`).
 """
 
 from __future__ import annotations
@@ -94,6 +95,13 @@ class DynamicFitConfig:
     lambda_cos: float = 1e-4
     #: ``L_cos`` is estimated on the batch's first this-many samples (whole random rays)
     cos_points: int = 4096
+    #: ``lambda_empty`` x the mean density (clamped at 10) at ``empty_points`` random points and times
+    #: in the box above ``empty_above`` of its height: a prior that air is empty unless the images say
+    #: otherwise, against the layer in the air that a straight pass cannot rule out (stock K-Planes
+    #: paints the scene there; Table III session 20). 0: off
+    lambda_empty: float = 0.0
+    empty_points: int = 2048
+    empty_above: float = 0.3
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
     #: extended only: the dynamic time planes act on ``f_d`` in proportion to the point's dynamic
@@ -260,6 +268,16 @@ def load_dynamic_checkpoint(path: str | Path, map_location=None) -> tuple[Dynami
     return model.to(map_location or device()).eval(), ck
 
 
+def air_density(field, n: int, above: float, generator: torch.Generator) -> torch.Tensor:
+    """Density (1/m, clamped at 10) of ``field`` (:class:`fields.kplanes.KPlanesField`) at ``n`` points
+    uniform in its box above the share ``above`` of its height (world ENU), at uniform times in [0, 1]."""
+    lo, hi = field.lo, field.hi
+    u = torch.rand(n, 3, device=lo.device, generator=generator)
+    u[:, 2] = above + (1.0 - above) * u[:, 2]
+    times = torch.rand(n, device=lo.device, generator=generator)
+    return field(lo + u * (hi - lo), times, with_mask=False)["sigma"].clamp_max(10.0)
+
+
 def regularisers(model: DynamicModel, cfg: DynamicFitConfig) -> torch.Tensor:
     enc = model.field.encoding
     return (cfg.lambda_tv * enc.total_variation() + cfg.lambda_time_smooth * enc.time_smoothness()
@@ -364,6 +382,8 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             loss = loss + cfg.lambda_pose * model.pose_drift.penalty()
         if cfg.lambda_dist > 0:
             loss = loss + cfg.lambda_dist * model.distortion(res)
+        if cfg.lambda_empty > 0:
+            loss = loss + cfg.lambda_empty * air_density(model.field, cfg.empty_points, cfg.empty_above, gen).mean()
         m_ok = has_mask[fi]
         if cfg.lambda_mask > 0 and m_ok.any():
             tgt = cls[m_ok]

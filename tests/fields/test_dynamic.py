@@ -18,6 +18,7 @@ from fields.dynamic_model import DynamicModel, plane_sizing
 from fields.dynamic_simscene import LineSpec, PoseNoise, noisy_poses, write_line_flight
 from fields.dynamic_training import (
     DynamicFitConfig,
+    air_density,
     build_model,
     evaluate_dynamic,
     fit_dynamic,
@@ -567,3 +568,25 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     fit_dynamic_flight(flight, tmp_path / "out", "kplanes", budget_s=None, iters=2, samples=8, batch_rays=128,
                        pose_knot_s=2.0)  # an explicit spacing (uavsim fit --pose-knot-s 2) holds on SfM poses
     assert json.loads((tmp_path / "out" / "fit.json").read_text())["pose_drift"]["knots"] == 4
+
+
+def test_air_density_samples_the_upper_box_at_all_times_and_the_fit_stays_finite(dynamic_flight):
+    dd = load_dynamic_flight(dynamic_flight)
+    model = _model(dd, "kplanes-ext")
+    seen = {}
+    forward = model.field.forward
+
+    def spy(points, times01, **kw):
+        seen["points"], seen["times"] = points, times01
+        return forward(points, times01, **kw)
+
+    model.field.forward = spy
+    sigma = air_density(model.field, 500, 0.3, torch.Generator().manual_seed(0))
+    lo, hi = model.field.lo, model.field.hi
+    z01 = (seen["points"][:, 2] - lo[2]) / (hi[2] - lo[2])
+    assert sigma.shape == (500,) and (sigma >= 0).all() and (sigma <= 10).all()
+    assert float(z01.min()) >= 0.3 - 1e-6 and float(z01.max()) <= 1.0
+    assert ((seen["points"] >= lo) & (seen["points"] <= hi)).all()
+    assert 0 <= float(seen["times"].min()) and float(seen["times"].max()) <= 1
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", lambda_empty=0.01, **TINY))
+    assert all(torch.isfinite(p).all() for p in r.model.parameters())
