@@ -74,18 +74,20 @@ def main() -> None:
     picked = val_idx[:: max(args.every, 1)]
     world = make_world(seed=args.world_seed, dynamic=True)
     t0 = time.perf_counter()
-    novel, truth_rgb, covered = {}, {}, {}
+    novel, truth_rgb, covered, true_depth, background = {}, {}, {}, {}, {}
     train_true = [true_pose[i] for i in train_idx]
     for i in picked:
         novel[i] = raised_along_axis(true_pose[i], args.scale)
         truth_rgb[i] = world.render(cam, novel[i], t=float(truth_rows[dd.data.names[i]]["t_scene_s"]),
                                     supersample=2).rgb
         covered[i] = covered_mask(cam, novel[i], train_true)
+        _, _, true_depth[i] = rays_to_ground(cam, true_pose[i])  # m along each pixel's ray to z = 0
+        background[i] = np.isfinite(true_depth[i]) & (dd.data.masks[i].numpy().reshape(-1) == 0)
     print(f"{flight.name}: {len(picked)} held-out frames, truth views at {args.scale:g}x the distance rendered "
           f"in {time.perf_counter() - t0:.0f} s", flush=True)
     results, renders = {}, {i: [truth_rgb[i]] for i in picked}
     for kind in args.kinds.split(","):
-        model, ck = load_dynamic_checkpoint(args.fits / kind / "dynamic.pt", "cpu")
+        model, ck = load_dynamic_checkpoint(args.fits / kind / "dynamic.pt")
         sim = fit_world_similarity(cam, [model.field_pose(dd.data.cam_from_world[i], float(t01[i])) for i in train_idx],
                                    train_true)
         scale = float(np.exp(sim[6]))
@@ -93,9 +95,8 @@ def main() -> None:
         for i in picked:
             own = model.render_image(cam, model.field_pose(dd.data.cam_from_world[i], float(t01[i])), float(t01[i]),
                                      with_mask=False)
-            _, _, true_depth = rays_to_ground(cam, true_pose[i])
-            valid = np.isfinite(true_depth) & (dd.data.masks[i].numpy().reshape(-1) == 0)
-            rel = np.abs(own["depth"].reshape(-1) * scale - true_depth)[valid] / true_depth[valid]
+            valid = background[i]
+            rel = np.abs(own["depth"].reshape(-1) * scale - true_depth[i])[valid] / true_depth[i][valid]
             r = model.render_image(cam, field_pose_from_true(novel[i], sim), float(t01[i]), with_mask=False)
             renders[i].append((np.clip(r["rgb"], 0, 1) * 255).round().astype(np.uint8))
             rows.append({"frame": dd.data.names[i], "depth_rel_median": float(np.median(rel)),
