@@ -277,7 +277,7 @@ def air_density(field, n: int, above: float, generator: torch.Generator) -> torc
     u = torch.rand(n, 3, device=lo.device, generator=generator)
     u[:, 2] = above + (1.0 - above) * u[:, 2]
     times = torch.rand(n, device=lo.device, generator=generator)
-    return field(lo + u * (hi - lo), times, with_mask=False)["sigma"].clamp_max(10.0)
+    return field.density(lo + u * (hi - lo), times).clamp_max(10.0)
 
 
 def regularisers(model: DynamicModel, cfg: DynamicFitConfig) -> torch.Tensor:

@@ -512,9 +512,9 @@ class KPlanesField(nn.Module):
             inputs = torch.cat([inputs, self.mask_planes(x01, times01)["features"]], dim=-1)
         return self.mask_head(inputs).float()
 
-    def forward(self, points, times01, dirs=None, image_idx=None, dynamic_gate=None, with_mask=True,
-                space_points: int | None = None) -> dict:
-        """``space_points``: how many leading points' per-plane spatial features to return (None: all)."""
+    def _geometry(self, points, times01, dynamic_gate=None, space_points: int | None = None):
+        """Normalised points, the encoding's outputs, density (1/m, 0 outside the box) and the
+        geometry features of world points ``points`` (N,3) at times ``times01`` (N,)."""
         x01 = self.normalise(points)
         inside = ((x01 >= 0) & (x01 <= 1)).all(dim=-1)
         enc = self.encoding(x01, times01, dynamic_gate, space_points)
@@ -523,7 +523,17 @@ class KPlanesField(nn.Module):
             feat = self.fuse(feat)
         hgeo = self.geo_mlp(feat).float()
         sigma = torch.exp(torch.clamp(hgeo[:, 0] + self.config.density_bias, max=15.0)) * inside
-        geo = hgeo[:, 1:]
+        return x01, enc, sigma, hgeo[:, 1:]
+
+    def density(self, points: torch.Tensor, times01: torch.Tensor) -> torch.Tensor:
+        """Density (1/m) alone at world points (N,3) and times (N,): no colour or mask heads, and
+        for the extended variant no per-plane features kept for ``L_cos``."""
+        return self._geometry(points, times01, space_points=0)[2]
+
+    def forward(self, points, times01, dirs=None, image_idx=None, dynamic_gate=None, with_mask=True,
+                space_points: int | None = None) -> dict:
+        """``space_points``: how many leading points' per-plane spatial features to return (None: all)."""
+        x01, enc, sigma, geo = self._geometry(points, times01, dynamic_gate, space_points)
         if image_idx is None:
             app = self.appearance.weight.mean(0, keepdim=True).expand(points.shape[0], -1)
         else:

@@ -100,6 +100,21 @@ def test_field_outputs_are_finite_and_gradients_survive_100_steps():
     assert KPlanesFieldConfig.from_json(cfg.to_json()) == cfg
 
 
+@pytest.mark.parametrize("extended", [False, True])
+def test_density_alone_equals_the_full_forward_density(extended):
+    torch.manual_seed(2)
+    cfg = KPlanesFieldConfig(planes=KPlanesConfig(base_resolution=(6, 6, 3), multipliers=(1, 2), time_resolution=4,
+                                                  features=4, extended=extended), hidden=16, n_images=2)
+    field = KPlanesField(cfg)
+    for p in field.encoding.time_planes():  # time planes away from 1, so times matter
+        torch.nn.init.uniform_(p, 0.5, 1.5)
+    pts = torch.rand(50, 3) * 2.4 - 1.2  # some outside the box: density 0 there
+    times = torch.rand(50)
+    sigma = field.density(pts, times)
+    assert torch.equal(sigma, field(pts, times, with_mask=False)["sigma"])
+    assert (sigma[(pts.abs() > 1).any(dim=-1)] == 0).all()
+
+
 def test_time_gate_hand_values_static_where_the_mask_says_nobody_is():
     """``f_d = S_d * (1 + p * (T_d - 1))``: at p = 0 the time planes drop out, at p = 1 it is the stock
     product, in between linear; the mask channel (the source of p) gets no gradient through it."""
