@@ -104,6 +104,10 @@ class DynamicFitConfig:
     lambda_empty: float = 0.0
     empty_points: int = 2048
     empty_above: float = 0.3
+    #: the prior applies while this share of training (of the budget or the steps) has not passed,
+    #: then stops (1: throughout): it can steer the first steps, where a fit settles on a layer in
+    #: the air or not (Table III session 17), and then leave tall objects to the images
+    empty_until: float = 1.0
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
     #: extended only: the dynamic time planes act on ``f_d`` in proportion to the point's dynamic
@@ -384,7 +388,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             loss = loss + cfg.lambda_pose * model.pose_drift.penalty()
         if cfg.lambda_dist > 0:
             loss = loss + cfg.lambda_dist * model.distortion(res)
-        if cfg.lambda_empty > 0:
+        if cfg.lambda_empty > 0 and share < cfg.empty_until:
             loss = loss + cfg.lambda_empty * air_density(model.field, cfg.empty_points, cfg.empty_above, gen).mean()
         m_ok = has_mask[fi]
         if cfg.lambda_mask > 0 and m_ok.any():

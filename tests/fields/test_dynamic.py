@@ -574,13 +574,13 @@ def test_air_density_samples_the_upper_box_at_all_times_and_the_fit_stays_finite
     dd = load_dynamic_flight(dynamic_flight)
     model = _model(dd, "kplanes-ext")
     seen = {}
-    forward = model.field.forward
+    density = model.field.density
 
-    def spy(points, times01, **kw):
+    def spy(points, times01):
         seen["points"], seen["times"] = points, times01
-        return forward(points, times01, **kw)
+        return density(points, times01)
 
-    model.field.forward = spy
+    model.field.density = spy
     sigma = air_density(model.field, 500, 0.3, torch.Generator().manual_seed(0))
     lo, hi = model.field.lo, model.field.hi
     z01 = (seen["points"][:, 2] - lo[2]) / (hi[2] - lo[2])
@@ -590,3 +590,22 @@ def test_air_density_samples_the_upper_box_at_all_times_and_the_fit_stays_finite
     assert 0 <= float(seen["times"].min()) and float(seen["times"].max()) <= 1
     r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", lambda_empty=0.01, **TINY))
     assert all(torch.isfinite(p).all() for p in r.model.parameters())
+
+
+def test_air_prior_stops_after_its_share_of_training(dynamic_flight, monkeypatch):
+    import fields.dynamic_training as training
+
+    calls = []
+
+    def counting(field, n, above, generator):
+        calls.append(n)
+        return air_density(field, n, above, generator)
+
+    monkeypatch.setattr(training, "air_density", counting)
+    dd = load_dynamic_flight(dynamic_flight)
+    cfg = {**TINY, "iters": 10}
+    fit_dynamic(dd, DynamicFitConfig(kind="kplanes", lambda_empty=1e-3, empty_until=0.3, **cfg))
+    assert len(calls) == 3  # steps 0, 1, 2 of 10: shares 0, 0.1, 0.2 < 0.3
+    calls.clear()
+    fit_dynamic(dd, DynamicFitConfig(kind="kplanes", lambda_empty=1e-3, **cfg))
+    assert len(calls) == 10
