@@ -40,7 +40,14 @@ from fields.model import SamplerConfig
 from fields.pose_drift import knot_count, warmup_scale
 from fields.scene import SceneBounds, scene_bounds
 from fields.synthesis import match_boxes as match_detections
-from fields.training import configure_threads, device, importance_weights, positive_pixels, schedule_progress
+from fields.training import (
+    configure_threads,
+    device,
+    importance_weights,
+    positive_pixels,
+    schedule_progress,
+    upper_box_points,
+)
 
 log = logging.getLogger(__name__)
 
@@ -280,11 +287,9 @@ def load_dynamic_checkpoint(path: str | Path, map_location=None) -> tuple[Dynami
 def air_density(field, n: int, above: float, generator: torch.Generator) -> torch.Tensor:
     """Density (1/m, clamped at 10) of ``field`` (:class:`fields.kplanes.KPlanesField`) at ``n`` points
     uniform in its box above the share ``above`` of its height (world ENU), at uniform times in [0, 1]."""
-    lo, hi = field.lo, field.hi
-    u = torch.rand(n, 3, device=lo.device, generator=generator)
-    u[:, 2] = above + (1.0 - above) * u[:, 2]
-    times = torch.rand(n, device=lo.device, generator=generator)
-    return field.density(lo + u * (hi - lo), times).clamp_max(10.0)
+    points = upper_box_points(field.lo, field.hi, n, above, generator)
+    times = torch.rand(n, device=points.device, generator=generator)
+    return field.density(points, times).clamp_max(10.0)
 
 
 def regularisers(model: DynamicModel, cfg: DynamicFitConfig) -> torch.Tensor:

@@ -260,6 +260,15 @@ def load_checkpoint(path: str | Path, map_location=None) -> tuple[StaticModel, d
     return model.to(map_location or device()).eval(), ck
 
 
+def upper_box_points(lo: torch.Tensor, hi: torch.Tensor, n: int, above: float,
+                     generator: torch.Generator) -> torch.Tensor:
+    """``n`` points (n, 3) uniform in the box ``lo``..``hi`` (world ENU, m) above the share ``above``
+    of its height: where the air-density priors look for density the images did not ask for."""
+    u = torch.rand(n, 3, device=lo.device, generator=generator)
+    u[:, 2] = above + (1.0 - above) * u[:, 2]
+    return lo + u * (hi - lo)
+
+
 def schedule_progress(step: int, iters: int, train_s: float, budget_s: float | None) -> float:
     """Fraction of training done, 0..1: by steps, or by seconds when a budget is set (whichever is further)."""
     p = step / max(iters, 1)
@@ -410,10 +419,8 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
                     loss = loss + cfg.lambda_mask * _mask_nll(res["mask_probs"][m_ok], tgt,
                                                               fg_w[tgt] * iw[(boxed > 0).long()])
             if cfg.lambda_empty > 0:
-                lo, hi = model.field.lo, model.field.hi
-                u = torch.rand(4096, 3, device=dev, generator=gen)
-                u[:, 2] = 0.3 + 0.7 * u[:, 2]  # upper 70 % of the slab
-                loss = loss + cfg.lambda_empty * model.field.density(lo + u * (hi - lo)).clamp_max(10).mean()
+                air = upper_box_points(model.field.lo, model.field.hi, 4096, 0.3, gen)  # upper 70 % of the slab
+                loss = loss + cfg.lambda_empty * model.field.density(air).clamp_max(10).mean()
             if cfg.lambda_topdown > 0 and step >= cfg.topdown_start:
                 o_v, d_v = topdown_rays(model.field.lo, model.field.hi, cfg.topdown_ray_count, cfg.topdown_tilt_deg,
                                        gen)

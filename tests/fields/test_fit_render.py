@@ -13,7 +13,7 @@ from fields.data import FlightDataError, box_mask, load_flight
 from fields.evaluation import boxes_from_mask, match_boxes, psnr, ssim
 from fields.scene import scene_bounds, size_model
 from fields.simscene import novel_poses_file
-from fields.training import FitConfig, fit, load_checkpoint
+from fields.training import FitConfig, fit, load_checkpoint, upper_box_points
 from telemetry.frames import orbit_pose
 
 TINY = dict(iters=30, budget_s=None, batch_rays=256, n_samples=16, budget_mb=1.0, threads=1,
@@ -174,3 +174,11 @@ def test_heldout_box_iou_uses_label_boxes(tiny_flight):
     assert len(d.boxes[0]) == len((tiny_flight / "labels" / "000000.txt").read_text().splitlines())
     c, x0, y0, x1, y1 = d.boxes[0][0]
     assert 0 <= x0 < x1 <= 64 and 0 <= y0 < y1 <= 48
+
+
+def test_upper_box_points_lie_in_the_box_above_the_share():
+    lo, hi = torch.tensor([-3.0, 2.0, -1.0]), torch.tensor([5.0, 4.0, 9.0])
+    pts = upper_box_points(lo, hi, 2000, 0.3, torch.Generator().manual_seed(0))
+    assert pts.shape == (2000, 3)
+    assert ((pts >= lo) & (pts <= hi)).all() and float(pts[:, 2].min()) >= -1.0 + 0.3 * 10.0 - 1e-5
+    assert float(pts[:, 2].max()) > 8.5 and float(pts[:, 0].min()) < -2.5  # spread over the band
