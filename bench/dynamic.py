@@ -280,6 +280,8 @@ def main() -> None:
                          "box_fraction": ev["box_fraction"],
                          "train_psnr_end": r.curve[-1]["train_psnr"] if r.curve else None,
                          "box_iou_mean": ev["box_iou_mean"], "steps": r.step, "train_s": round(r.train_s, 1),
+                         "ground_shortfall": r.ground_shortfall, "air_share": r.air_share,
+                         "air_prior_steps": r.air_prior_steps,
                          "eval_s": round(time.perf_counter() - t_e, 1), "params": n, "mb": round(n * 4 / 1e6, 2),
                          "planes": r.model.field_config.planes.to_json(), "curve": r.curve,
                          "per_frame_psnr": [round(f["psnr"], 3) for f in ev["frames"]],
@@ -287,6 +289,10 @@ def main() -> None:
         print(f"{kind}: held-out PSNR {ev['psnr']:.2f} dB (boxes {ev['box_psnr'] or float('nan'):.2f}, background "
               f"{ev['bg_psnr'] or float('nan'):.2f}, box pixels {100 * (ev['box_fraction'] or 0):.1f} %), "
               f"SSIM {ev['ssim']:.3f}, {r.step} steps in {r.train_s:.0f} s, {n} params; {load_avg()}", flush=True)
+        if r.ground_shortfall is not None:
+            print(f"  background rays end {r.ground_shortfall:.1%} short of the ground plane (running median), "
+                  f"{r.air_share:.1%} of them in the air; air prior in {r.air_prior_steps} of {r.step} steps",
+                  flush=True)
         if aligned:
             print(f"  held-out poses aligned to the field ({aligned['alignment']['steps']} steps, "
                   f"{aligned['seconds']:.0f} s; corrections {aligned['alignment']['trans_rms_m'] * 100:.1f} cm, "

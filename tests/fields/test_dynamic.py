@@ -17,12 +17,15 @@ from fields.dynamic_data import load_dynamic_flight, normalise_times, time_resol
 from fields.dynamic_model import DynamicModel, plane_sizing
 from fields.dynamic_simscene import LineSpec, PoseNoise, noisy_poses, write_line_flight
 from fields.dynamic_training import (
+    AIR_MARGIN,
     DynamicFitConfig,
     air_density,
     build_model,
     evaluate_dynamic,
     fit_dynamic,
     load_dynamic_checkpoint,
+    ray_shortfall,
+    shortfall_stats,
     split,
 )
 from fields.scene_kind import choose_kind
@@ -592,7 +595,12 @@ def test_air_density_samples_the_upper_box_at_all_times_and_the_fit_stays_finite
     assert all(torch.isfinite(p).all() for p in r.model.parameters())
 
 
-def test_air_prior_stops_after_its_share_of_training(dynamic_flight, monkeypatch):
+@pytest.mark.parametrize(("window", "expected_steps"), [
+    ({"empty_until": 0.3}, 3),  # steps 0, 1, 2 of 10: shares 0, 0.1, 0.2 < 0.3
+    ({}, 10),  # throughout
+    ({"empty_from": 0.3, "empty_until": 0.8}, 5),  # steps 3..7: shares 0.3 .. 0.7
+])
+def test_air_prior_acts_in_its_window_of_training(dynamic_flight, monkeypatch, window, expected_steps):
     import fields.dynamic_training as training
 
     calls = []
@@ -603,9 +611,62 @@ def test_air_prior_stops_after_its_share_of_training(dynamic_flight, monkeypatch
 
     monkeypatch.setattr(training, "air_density", counting)
     dd = load_dynamic_flight(dynamic_flight)
-    cfg = {**TINY, "iters": 10}
-    fit_dynamic(dd, DynamicFitConfig(kind="kplanes", lambda_empty=1e-3, empty_until=0.3, **cfg))
-    assert len(calls) == 3  # steps 0, 1, 2 of 10: shares 0, 0.1, 0.2 < 0.3
-    calls.clear()
-    fit_dynamic(dd, DynamicFitConfig(kind="kplanes", lambda_empty=1e-3, **cfg))
-    assert len(calls) == 10
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", lambda_empty=1e-3, **window, **{**TINY, "iters": 10}))
+    assert len(calls) == expected_steps and r.air_prior_steps == expected_steps
+
+
+def test_ray_shortfall_on_hand_computed_rays():
+    # from 10 m above the ground plane z = 2: straight down (ground 10 m away) and 60 deg below the
+    # horizon (ground 10 / sin 60 deg = 11.547 m away)
+    s60, c60 = np.sin(np.pi / 3), np.cos(np.pi / 3)
+    origins = torch.tensor([[0.0, 0.0, 12.0]] * 4)
+    dirs = torch.tensor([[0.0, 0.0, -1.0], [c60, 0.0, -s60], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    keep = torch.tensor([True, True, True, False])
+    on_ground = torch.tensor([10.0, 10.0 / s60, 10.0, 1.0])
+    assert ray_shortfall(on_ground, origins, dirs, 2.0, keep).tolist() == pytest.approx([0.0] * 3, abs=1e-6)
+    assert shortfall_stats(ray_shortfall(on_ground, origins, dirs, 2.0, keep)) == pytest.approx((0.0, 0.0), abs=1e-6)
+    # a layer a third of the way down on every kept ray; the dropped ray's depth never counts
+    layer = torch.tensor([[10 / 3], [10 / 3 / s60], [10 / 3], [1e9]])
+    assert shortfall_stats(ray_shortfall(layer, origins, dirs, 2.0, keep)) == pytest.approx((2 / 3, 1.0), abs=1e-5)
+    # one short ray of three (a tree) leaves the median on the ground and puts a third in the air
+    tree = torch.tensor([10.0, 2.0, 10.0, 0.0])
+    assert shortfall_stats(ray_shortfall(tree, origins, dirs, 2.0, keep)) == pytest.approx((0.0, 1 / 3), abs=1e-6)
+    # a roof 3 m up: 30 % short, not in the air; beyond the plane: negative
+    roof_and_far = torch.tensor([7.0, 20.0 / s60, 7.0, 0.0])
+    median, in_air = shortfall_stats(ray_shortfall(roof_and_far, origins, dirs, 2.0, keep))
+    assert median == pytest.approx(0.3, abs=1e-6) and in_air == 0.0
+    assert ray_shortfall(roof_and_far, origins, dirs, 2.0, keep)[1] == pytest.approx(-1.0, abs=1e-5)
+
+
+def test_ray_shortfall_skips_rays_that_cannot_meet_the_ground():
+    origins = torch.tensor([[0.0, 0.0, 12.0], [0.0, 0.0, 12.0], [0.0, 0.0, 1.0], [0.0, 0.0, 12.0]])
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    depth = torch.tensor([5.0, 5.0, 5.0, float("nan")])
+    # looking up, level, starting below the plane, a NaN depth: no ray left
+    assert ray_shortfall(depth, origins, dirs, 2.0, torch.ones(4, dtype=torch.bool)).numel() == 0
+    assert shortfall_stats(ray_shortfall(depth, origins, dirs, 2.0, torch.ones(4, dtype=torch.bool))) is None
+    assert ray_shortfall(depth[:0], origins[:0], dirs[:0], 2.0, torch.zeros(0, dtype=torch.bool)).numel() == 0
+
+
+@pytest.mark.parametrize("shortfall", [0.5, 0.01])
+def test_fit_logs_the_running_shortfall_of_its_background_rays(dynamic_flight, monkeypatch, shortfall):
+    import fields.dynamic_training as training
+
+    # every background ray of every batch ends ``shortfall`` short of the ground
+    monkeypatch.setattr(training, "ray_shortfall", lambda *a: torch.full((8,), shortfall))
+    dd = load_dynamic_flight(dynamic_flight)
+    cfg = {**TINY, "iters": 6, "log_every_s": 0.0}
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", **cfg))
+    assert r.ground_shortfall == pytest.approx(shortfall)
+    assert r.air_share == pytest.approx(1.0 if shortfall > AIR_MARGIN else 0.0)
+    assert r.curve[-1]["ground_shortfall"] == pytest.approx(shortfall, abs=1e-4)
+    assert r.curve[-1]["air_share"] == r.air_share
+
+
+def test_fit_reports_the_ground_shortfall_of_its_rays(dynamic_flight):
+    dd = load_dynamic_flight(dynamic_flight)
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **{**TINY, "log_every_s": 0.0}))
+    assert r.ground_shortfall is not None and np.isfinite(r.ground_shortfall) and r.ground_shortfall < 1.0
+    assert 0.0 <= r.air_share <= 1.0
+    assert r.air_prior_steps == 0  # lambda_empty is off by default
+    assert all("ground_shortfall" in c for c in r.curve)
