@@ -332,6 +332,11 @@ def shortfall_stats(shortfall: torch.Tensor) -> tuple[float, float] | None:
     return float(shortfall.median()), float((shortfall > AIR_MARGIN).float().mean())
 
 
+def running_average(previous: float | None, value: float) -> float:
+    """The exponential average over training steps that the loop logs (weight 0.05 on the newest)."""
+    return value if previous is None else 0.95 * previous + 0.05 * value
+
+
 def regularisers(model: DynamicModel, cfg: DynamicFitConfig) -> torch.Tensor:
     enc = model.field.encoding
     return (cfg.lambda_tv * enc.total_variation() + cfg.lambda_time_smooth * enc.time_smoothness()
@@ -444,8 +449,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             loss = loss + cfg.lambda_dist * model.distortion(res)
         stats = shortfall_stats(ray_shortfall(res["depth"], o, d, ground_z, cls == 0))
         if stats is not None:
-            shortfall_ema = stats[0] if shortfall_ema is None else 0.95 * shortfall_ema + 0.05 * stats[0]
-            air_ema = stats[1] if air_ema is None else 0.95 * air_ema + 0.05 * stats[1]
+            shortfall_ema, air_ema = running_average(shortfall_ema, stats[0]), running_average(air_ema, stats[1])
         if cfg.lambda_empty > 0 and cfg.empty_from <= share < cfg.empty_until:
             loss = loss + cfg.lambda_empty * air_density(model.field, cfg.empty_points, cfg.empty_above, gen).mean()
             prior_steps += 1
@@ -469,7 +473,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         train_s += now - t_mark
         t_mark = now
         lv = float(loss_rgb.detach())
-        loss_ema = lv if loss_ema is None else 0.95 * loss_ema + 0.05 * lv
+        loss_ema = running_average(loss_ema, lv)
         if train_s - last_log >= cfg.log_every_s:
             last_log = train_s
             p = -10 * math.log10(max(loss_ema, 1e-10))
