@@ -596,9 +596,11 @@ def test_air_density_samples_the_upper_box_at_all_times_and_the_fit_stays_finite
 
 
 @pytest.mark.parametrize(("window", "expected_steps"), [
-    ({"empty_until": 0.3}, 3),  # steps 0, 1, 2 of 10: shares 0, 0.1, 0.2 < 0.3
-    ({}, 10),  # throughout
+    ({}, 9),  # the defaults: steps 1..9 of 10, shares 0.1 .. 0.9
+    ({"empty_from": 0.0, "empty_until": 0.3}, 3),  # steps 0, 1, 2: shares 0, 0.1, 0.2 < 0.3
+    ({"empty_from": 0.0}, 10),  # throughout
     ({"empty_from": 0.3, "empty_until": 0.8}, 5),  # steps 3..7: shares 0.3 .. 0.7
+    ({"lambda_empty": 0.0}, 0),  # off
 ])
 def test_air_prior_acts_in_its_window_of_training(dynamic_flight, monkeypatch, window, expected_steps):
     import fields.dynamic_training as training
@@ -611,7 +613,7 @@ def test_air_prior_acts_in_its_window_of_training(dynamic_flight, monkeypatch, w
 
     monkeypatch.setattr(training, "air_density", counting)
     dd = load_dynamic_flight(dynamic_flight)
-    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", lambda_empty=1e-3, **window, **{**TINY, "iters": 10}))
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", **window, **{**TINY, "iters": 10}))
     assert len(calls) == expected_steps and r.air_prior_steps == expected_steps
 
 
@@ -668,5 +670,5 @@ def test_fit_reports_the_ground_shortfall_of_its_rays(dynamic_flight):
     r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **{**TINY, "log_every_s": 0.0}))
     assert r.ground_shortfall is not None and np.isfinite(r.ground_shortfall) and r.ground_shortfall < 1.0
     assert 0.0 <= r.air_share <= 1.0
-    assert r.air_prior_steps == 0  # lambda_empty is off by default
+    assert r.air_prior_steps == 2  # the prior is on from 10 % of training: steps 1 and 2 of 3
     assert all("ground_shortfall" in c for c in r.curve)

@@ -54,9 +54,11 @@ def _mse(model, camera, T, t01, image) -> float:
 
 
 def test_alignment_undoes_a_pose_error_against_the_field_own_renders(fitted):
-    """Target = the field's own render at a pose; start 8 cm and 0.3 deg off: the photometric loss and
-    the image error falls at least five-fold, the camera centre moves back towards the target pose,
-    and the field is untouched."""
+    """Target = the field's own render at a pose, rounded to 8 bits; start 8 cm and 0.3 deg off: the
+    photometric loss falls, the image error above the rounding floor (the error at the target pose
+    itself) falls at least five-fold, the camera centre moves back towards the target pose, and the
+    field is untouched. (With the ground where it belongs, 6 m down, the start error is only ~3x that
+    floor, so the floor has to come off.)"""
     dd, model = fitted
     cam = dd.data.camera
     t01 = dd.t01()
@@ -72,7 +74,8 @@ def test_alignment_undoes_a_pose_error_against_the_field_own_renders(fitted):
     assert report["frames"] == 2 and report["steps"] == 60
     assert report["loss_end"] < report["loss_start"]
     for T0, T1, Tt, i, img in zip(start, poses, truth, frames, images.numpy(), strict=True):
-        assert _mse(model, cam, T1, float(t01[i]), img) < 0.2 * _mse(model, cam, T0, float(t01[i]), img)
+        floor, before, after = (_mse(model, cam, T, float(t01[i]), img) for T in (Tt, T0, T1))
+        assert after - floor < 0.2 * (before - floor)
         centre_error = lambda T: np.linalg.norm(camera_center(T) - camera_center(Tt))  # noqa: E731, B023
         assert centre_error(T1) < centre_error(T0)
     assert all(torch.equal(v, model.state_dict()[k]) for k, v in state.items())
