@@ -118,10 +118,11 @@ class DynamicFitConfig:
     empty_until: float = 1.0
     #: the prior starts once this share of training (of the budget or the steps) has passed. From
     #: step 0 it cost extended 0.6 dB held-out on the 80-frame flight even when it stopped after ~130
-    #: steps (Table III session 22). At 0.1 (900 s,
-    #: ~250 steps), extended's held-out PSNR against the prior off over two seeds: 80 frames +0.11 /
-    #: -0.03 dB, 300 frames +0.18 / +1.15 dB (the second a fit that took the layer without the prior);
-    #: from 30 m -0.44 / -0.05 and +0.98 / +2.91 dB (Table III sessions 22, 23)
+    #: steps (Table III session 22). At 0.1 (900 s, ~250 steps), extended's held-out PSNR against the
+    #: prior off over two seeds: 80 frames +0.11 / -0.03 dB, 300 frames +0.18 / +1.15 dB (the second a
+    #: fit that took the layer without the prior); from 30 m -0.44 / -0.05 and +0.98 / +2.91 dB (Table
+    #: III sessions 22, 23). Stock has settled on its layer by then and keeps it; from step 0 the prior
+    #: takes stock off most of it (depth error 64 -> 6-9 %, Table III session 23)
     empty_from: float = 0.1
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
