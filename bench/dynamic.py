@@ -11,9 +11,11 @@ held-out PSNR / SSIM over all validation frames, PSNR inside person boxes, steps
 and the pose errors against the simulator's true poses (as given, and as rendered after the learned
 pose-drift correction, ``DynamicFitConfig.pose_knot_s``: on by default since session 7 for telemetry
 poses, off for SfM-refined ones since session 9; off with ``--set pose_knot_s=null``, forced on SfM poses
-with ``--set pose_drift_on_sfm=true``). ``--sfm``: first refine the noisy telemetry poses with SfM (pycolmap,
-telemetry priors, every frame, as ``uavsim poses`` does on a recorded flight; cached as a copy of the
-flight folder with suffix ``_sfm``): the paper's set-up, whose poses came from COLMAP.
+with ``--set pose_drift_on_sfm=true``; the air prior likewise, ``DynamicFitConfig.air_prior``, since
+session 24: ``--set air_prior=true`` forces it on SfM poses, ``--set lambda_empty=0`` turns it off).
+``--sfm``: first refine the noisy telemetry poses with SfM (pycolmap, telemetry priors, every frame,
+as ``uavsim poses`` does on a recorded flight; cached as a copy of the flight folder with suffix
+``_sfm``): the paper's set-up, whose poses came from COLMAP.
 
 Held-out frames carry their own white pose jitter, which no field can know; ``--align-steps`` (default
 150) therefore also reports held-out PSNR after each held-out frame's pose is aligned to the frozen

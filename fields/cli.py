@@ -39,6 +39,9 @@ def register(subparsers) -> None:
                    help="dynamic fits: learn a time-smooth pose-drift correction with one knot per this many "
                         "seconds of flight (default: 1 on telemetry poses, none when every pose is SfM-refined; "
                         "0: take the poses as given; a value given here holds on SfM poses too)")
+    p.add_argument("--air-prior", choices=("auto", "on", "off"), default="auto",
+                   help="dynamic fits: a prior that air is empty unless the images say otherwise, from 10%% of "
+                        "training on (auto: on for telemetry poses, off when every pose is SfM-refined)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from derived/fields/static.pt")
     p.add_argument("--out", type=Path, default=None, help="output folder (default FLIGHT/derived/fields)")

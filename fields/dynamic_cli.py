@@ -68,11 +68,12 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
                        budget_s: float | None = 300.0, iters: int | None = None, holdout_every: int = 2,
                        threads: int | None = None, seed: int = 0, samples: int | None = None,
                        batch_rays: int | None = None, resume: bool = False,
-                       pose_knot_s: float | None = None) -> dict:
+                       pose_knot_s: float | None = None, air_prior: bool | None = None) -> dict:
     """Fit a ``kplanes`` or ``kplanes-ext`` field → ``out/dynamic.pt`` + ``fit.json`` (+ held-out previews).
 
     ``pose_knot_s``: spacing of the learned pose-drift knots, s (None: the config default, 1 s on
     telemetry poses and none on SfM-refined ones; 0: none; > 0: that spacing, on SfM poses too).
+    ``air_prior``: the empty-air prior on or off (None: on for telemetry poses, off on SfM-refined ones).
 
     Returns a summary: steps, train_s, params, mb, held-out psnr / ssim / box IoU (None without
     held-out frames). ``dd``: the loaded timed flight (loaded here when None).
@@ -82,7 +83,7 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
 
     dd = dd if dd is not None else load_dynamic_flight(flight)
     cfg = DynamicFitConfig(kind=kind, budget_s=budget_s or None, holdout_every=holdout_every, threads=threads,
-                           seed=seed)
+                           seed=seed, air_prior=air_prior)
     if pose_knot_s is not None:  # 0: take the poses as given; an explicit spacing holds on SfM poses too
         cfg.pose_knot_s = pose_knot_s or None
         cfg.pose_drift_on_sfm = bool(pose_knot_s)
@@ -118,7 +119,8 @@ def run(args, out: Path) -> int | None:
     f = fit_dynamic_flight(args.flight, out, kind, dd, choice, budget_s=args.budget_s, iters=args.iters,
                            holdout_every=every, threads=args.threads, seed=args.seed, samples=args.samples,
                            batch_rays=args.batch_rays, resume=args.resume,
-                           pose_knot_s=args.pose_knot_s)
+                           pose_knot_s=args.pose_knot_s,
+                           air_prior={"auto": None, "on": True, "off": False}[args.air_prior])
     msg = (f"{out}: {kind}, {f['steps']} steps in {f['train_s']:.0f} s, {f['params']} params "
            f"({f['mb']:.1f} MB)")
     if f["heldout_psnr"] is not None:

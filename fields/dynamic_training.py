@@ -7,8 +7,8 @@ so the objective stays the uniform one; each ray carries its frame's normalised 
 its pixel lies inside a labelled person box ("dynamic").
 
 Losses (both kinds): MSE on RGB; ``lambda_dist`` x distortion; ``lambda_empty`` x density in the air
-(from 10 % of training on); ``lambda_mask`` x the class-mask NLL (filled boxes, as the static fit, for
-synthesis); K-Planes regularisers ``lambda_tv`` x spatial plane total variation,
+(from 10 % of training on; by default on telemetry poses only); ``lambda_mask`` x the class-mask NLL
+(filled boxes, as the static fit, for synthesis); K-Planes regularisers ``lambda_tv`` x spatial plane total variation,
 ``lambda_time_smooth`` x second difference along t, ``lambda_time_l1`` x L1 of the time planes
 towards 1. Extended only: ``lambda_dynamic`` x BCE of the rendered time-plane mask channel against
 the box mask, ``lambda_cos`` x ``L_cos`` between static and dynamic spatial plane features at the
@@ -107,11 +107,14 @@ class DynamicFitConfig:
     #: otherwise, against the layer in the air that a straight pass cannot rule out (stock K-Planes
     #: paints the scene there; extended falls onto it on some seeds of the 300-frame flight). From
     #: step 0 it was a trade between the bench flights (Table III sessions 20, 21); started at
-    #: ``empty_from`` 0.1 it cost neither flight anything on two seeds and cured the seed that took
-    #: the layer (26.85 -> 28.00 dB held-out, 22.02 -> 24.93 from 30 m; Table III session 23). On
-    #: SfM-refined poses, where the fit found the ground without it, it cost 0.53 dB held-out and 0.45
-    #: from 30 m (300 frames, one seed, same section): a candidate for telemetry poses only. 0: off
+    #: ``empty_from`` 0.1 it cost neither telemetry flight anything on two seeds and cured the seed that
+    #: took the layer (26.85 -> 28.00 dB held-out, 22.02 -> 24.93 from 30 m; Table III session 23).
+    #: Whether it acts: ``air_prior``. 0: off
     lambda_empty: float = 1e-3
+    #: the air prior acts (True), does not (False), or None: on when the poses are telemetry, off when
+    #: every pose is SfM-refined. On SfM poses extended found the ground without it, and it cost 0.53 /
+    #: 1.46 dB held-out (300 frames, seeds 0 / 1, 900 s; bench/RESULTS.md, Table III sessions 23, 24)
+    air_prior: bool | None = None
     empty_points: int = 2048
     empty_above: float = 0.3
     #: the prior applies while this share of training (of the budget or the steps) has not passed,
@@ -224,6 +227,7 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     sizing.reasoning.append(why)
     if cfg.kind == "kplanes-ext":
         sizing.reasoning.append(why_gate)
+    sizing.reasoning.append(air_prior(dd, cfg)[1])
     frame_t01 = dd.t01()[train_idx].tolist() if knots and cfg.pose_per_frame else []  # rows: training frames
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
                          dd.t0_us, dd.span_us, pose_knots=knots, pose_coarse_knots=coarse, pose_frame_t01=frame_t01)
@@ -237,6 +241,19 @@ def time_gate(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[bool, str]:
     if dd.all_poses_sfm:
         return True, f"time gate: on, all {dd.n} poses are SfM-refined"
     return False, "time gate: off, the poses are telemetry (the gate was measured to fail on drifting poses)"
+
+
+def air_prior(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[bool, str]:
+    """Whether the air prior (``lambda_empty``) acts in this fit, and why (a line for fit.json)."""
+    if cfg.lambda_empty <= 0:
+        return False, "air prior: off (lambda_empty 0)"
+    if cfg.air_prior is not None:
+        return bool(cfg.air_prior), f"air prior: {'on' if cfg.air_prior else 'off'} (set explicitly)"
+    if dd.all_poses_sfm:
+        return False, (f"air prior: off, all {dd.n} poses are SfM-refined (there it was measured to cost "
+                       "held-out PSNR; --air-prior on forces it)")
+    return True, (f"air prior: on from {cfg.empty_from:.0%} of training, the poses are telemetry (against a "
+                  "layer in the air that a straight pass cannot rule out)")
 
 
 def pose_knots(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[int, list[int], str]:
@@ -417,6 +434,8 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     air_ema = curve[-1].get("air_share") if curve else None
     prior_steps = int(curve[-1].get("air_prior_steps", 0)) if curve else 0
     ground_z = model.background.ground_z
+    prior_on, why_prior = air_prior(dd, cfg)
+    log.info("%s", why_prior)
     while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
         share = schedule_progress(step, cfg.iters, train_s, cfg.budget_s)  # of training, 0..1
         decay = cfg.lr_final ** share
@@ -452,7 +471,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         stats = shortfall_stats(ray_shortfall(res["depth"], o, d, ground_z, cls == 0))
         if stats is not None:
             shortfall_ema, air_ema = running_average(shortfall_ema, stats[0]), running_average(air_ema, stats[1])
-        if cfg.lambda_empty > 0 and cfg.empty_from <= share < cfg.empty_until:
+        if prior_on and cfg.empty_from <= share < cfg.empty_until:
             loss = loss + cfg.lambda_empty * air_density(model.field, cfg.empty_points, cfg.empty_above, gen).mean()
             prior_steps += 1
         m_ok = has_mask[fi]

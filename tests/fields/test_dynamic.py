@@ -8,6 +8,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -529,6 +530,17 @@ def test_cli_fit_with_pose_knots_and_render_recorded_poses_at_the_corrected_pose
     np.testing.assert_array_equal(got, want)
 
 
+def _sfm_copy(flight: Path, tmp_path: Path) -> Path:
+    """A copy of ``flight`` whose every pose is marked SfM-refined (``source`` "sfm")."""
+    copy = tmp_path / "f"
+    shutil.copytree(flight, copy)
+    pf = PosesFile.load(copy / "derived" / "poses.json")
+    for e in pf.frames:
+        e.source = "sfm"
+    pf.save(copy / "derived" / "poses.json")
+    return copy
+
+
 def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dynamic_flight, tmp_path):
     from fields.dynamic_training import pose_knots, time_gate
 
@@ -539,12 +551,8 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     assert "first 10% of training" in why
     assert pose_knots(dd, DynamicFitConfig(pose_knot_coarse_s=(), pose_delay=0.0)) == (7, [], "pose drift: 7 knots, "
                                                                                           "one per 1 s of flight")
-    flight = tmp_path / "f"
-    shutil.copytree(dynamic_flight, flight)
+    flight = _sfm_copy(dynamic_flight, tmp_path)
     pf = PosesFile.load(flight / "derived" / "poses.json")
-    for e in pf.frames:
-        e.source = "sfm"
-    pf.save(flight / "derived" / "poses.json")
     sfm = load_dynamic_flight(flight)
     assert sfm.all_poses_sfm
     knots, _, why = pose_knots(sfm, DynamicFitConfig(kind="kplanes"))
@@ -601,6 +609,8 @@ def test_air_density_samples_the_upper_box_at_all_times_and_the_fit_stays_finite
     ({"empty_from": 0.0}, 10),  # throughout
     ({"empty_from": 0.3, "empty_until": 0.8}, 5),  # steps 3..7: shares 0.3 .. 0.7
     ({"lambda_empty": 0.0}, 0),  # off
+    ({"air_prior": False}, 0),  # off
+    ({"air_prior": True, "lambda_empty": 0.0}, 0),  # no weight: off
 ])
 def test_air_prior_acts_in_its_window_of_training(dynamic_flight, monkeypatch, window, expected_steps):
     import fields.dynamic_training as training
@@ -615,6 +625,36 @@ def test_air_prior_acts_in_its_window_of_training(dynamic_flight, monkeypatch, w
     dd = load_dynamic_flight(dynamic_flight)
     r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes", **window, **{**TINY, "iters": 10}))
     assert len(calls) == expected_steps and r.air_prior_steps == expected_steps
+
+
+def test_air_prior_acts_on_telemetry_poses_and_not_on_sfm_refined_ones(dynamic_flight, tmp_path):
+    from fields.dynamic_training import air_prior
+
+    dd = load_dynamic_flight(dynamic_flight)
+    sfm = load_dynamic_flight(_sfm_copy(dynamic_flight, tmp_path))
+    on, why = air_prior(dd, DynamicFitConfig())
+    assert on and why.startswith("air prior: on from 10% of training, the poses are telemetry")
+    on, why = air_prior(sfm, DynamicFitConfig())
+    assert not on and why.startswith(f"air prior: off, all {sfm.n} poses are SfM-refined")
+    assert air_prior(sfm, DynamicFitConfig(air_prior=True)) == (True, "air prior: on (set explicitly)")
+    assert air_prior(dd, DynamicFitConfig(air_prior=False)) == (False, "air prior: off (set explicitly)")
+    no_weight = DynamicFitConfig(air_prior=True, lambda_empty=0.0)
+    assert air_prior(dd, no_weight) == (False, "air prior: off (lambda_empty 0)")
+    cfg = {**TINY, "iters": 10}
+    r = fit_dynamic(sfm, DynamicFitConfig(kind="kplanes", **cfg))
+    assert r.air_prior_steps == 0 and any(line.startswith("air prior: off") for line in r.sizing["reasoning"])
+    assert fit_dynamic(sfm, DynamicFitConfig(kind="kplanes", air_prior=True, **cfg)).air_prior_steps == 9
+
+
+def test_cli_fit_air_prior_switch_overrides_the_pose_source_rule(dynamic_flight, tmp_path):
+    from agent.cli import main
+
+    out = tmp_path / "out"
+    assert main(["fit", str(dynamic_flight), "--kind", "kplanes", "--iters", "10", "--budget-s", "0", "--samples",
+                 "8", "--batch-rays", "128", "--air-prior", "off", "--out", str(out)]) == 0
+    fit = json.loads((out / "fit.json").read_text())
+    assert fit["air_prior_steps"] == 0 and fit["config"]["air_prior"] is False
+    assert "air prior: off (set explicitly)" in fit["sizing"]["reasoning"]
 
 
 def test_ray_shortfall_on_hand_computed_rays():
