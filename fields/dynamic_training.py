@@ -8,9 +8,9 @@ its pixel lies inside a labelled person box ("dynamic").
 
 Losses (both kinds): MSE on RGB; ``lambda_dist`` x distortion; ``lambda_empty`` x density in the air
 (from 10 % of training on; by default on telemetry poses only); ``lambda_mask`` x the class-mask NLL
-(filled boxes, as the static fit, for synthesis); K-Planes regularisers ``lambda_tv`` x spatial plane total variation,
-``lambda_time_smooth`` x second difference along t, ``lambda_time_l1`` x L1 of the time planes
-towards 1. Extended only: ``lambda_dynamic`` x BCE of the rendered time-plane mask channel against
+(filled boxes, as the static fit, for synthesis); K-Planes regularisers ``lambda_tv`` x spatial plane
+total variation, ``lambda_time_smooth`` x second difference along t, ``lambda_time_l1`` x L1 of the
+time planes towards 1. Extended only: ``lambda_dynamic`` x BCE of the rendered time-plane mask channel against
 the box mask, ``lambda_cos`` x ``L_cos`` between static and dynamic spatial plane features at the
 samples, and mask-gated gradients (static pixels update static planes only, dynamic pixels dynamic
 planes only; :func:`fields.kplanes.gate_grad`).
