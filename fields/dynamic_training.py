@@ -436,6 +436,10 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     ground_z = model.background.ground_z
     prior_on, why_prior = air_prior(dd, cfg)
     log.info("%s", why_prior)
+    # rays in the runs the gated encoding samples in place (:func:`gate_run_order`); L_cos reads the first
+    # ``cos_points`` samples, i.e. the leading whole rays
+    gate_runs = ext and cfg.gate
+    cos_rays = math.ceil(cfg.cos_points / model.sampler.n_samples) if cfg.lambda_cos > 0 else 0
     while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
         share = schedule_progress(step, cfg.iters, train_s, cfg.budget_s)  # of training, 0..1
         decay = cfg.lr_final ** share
@@ -450,6 +454,9 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         if n_box:
             k = torch.randint(len(pos_frame), (n_box,), device=dev, generator=gen)
             fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
+        if gate_runs:
+            order = gate_run_order(masks[fi, pi] > 0, cos_rays)
+            fi, pi = fi[order], pi[order]
         o, d = bank.rays(fi, pi)
         cls = masks[fi, pi]
         if drift is not None:
@@ -519,6 +526,17 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     if ckpt:
         save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
     return DynamicFitResult(model, step, train_s, curve, bounds, sizing, shortfall_ema, air_ema, prior_steps)
+
+
+def gate_run_order(dynamic: torch.Tensor, lead: int) -> torch.Tensor:
+    """Order (R,) of a batch's rays for the gated extended encoding: the first ``lead`` rays as drawn (those
+    ``L_cos`` reads), then the other static rays, then the other dynamic ones (``dynamic`` (R,) bool, True
+    inside a person box), each run in its drawn order. The encoding samples points in these runs without
+    permuting them (:meth:`fields.kplanes.KPlanesEncoding._forward_split`); the losses are means over rays,
+    so the order changes nothing else."""
+    lead = min(max(int(lead), 0), dynamic.shape[0])
+    rest = torch.argsort(dynamic[lead:].to(torch.uint8), stable=True) + lead
+    return torch.cat([torch.arange(lead, device=dynamic.device), rest])
 
 
 def background_pose_grad(origins: torch.Tensor, dirs: torch.Tensor, background: torch.Tensor

@@ -331,39 +331,52 @@ class KPlanesEncoding(nn.Module):
     def _forward_split(self, coords: torch.Tensor, dynamic: torch.Tensor, space_points: int | None) -> dict:
         """Extended K-Planes under a hard gate ``dynamic`` (N,) bool, without sampling for blocked gradients.
 
-        Points are reordered into three runs: B = static points, A = the first ``space_points`` points
-        (``L_cos`` needs their spatial features with gradients on both sides, so they keep
-        :func:`gate_grad`), C = dynamic points. Static planes carry gradients on B and A and are read
-        without autograd on C; dynamic planes the other way round, except the time planes' mask
+        The points fall into three runs: A = the first ``space_points`` points (``L_cos`` needs their
+        spatial features with gradients on both sides, so they keep :func:`gate_grad`), B = the other
+        static points, C = the other dynamic points. Static planes carry gradients on A and B and are
+        read without autograd on C; dynamic planes the other way round, except the time planes' mask
         channel, whose box supervision (``mask_values``) is ungated: it is sampled with gradients on B
         too. A gate of 0 or 1 scales a gradient to zero or leaves it, so values and gradients equal
         :meth:`_forward_gated`'s (up to the order of float sums).
+
+        Points that already come as A, B, C (the trainer orders its rays so) are used in place; any
+        other order is permuted into it and the outputs back, a gather of the (N, out_dim) features
+        that cost ~0.1 s of a 0.3 s training step on CPU (bench/RESULTS.md, Table III session 25).
         """
         n = coords.shape[0]
         n_a = n if space_points is None else min(int(space_points), n)
-        rest = torch.arange(n_a, n, device=coords.device)
-        idx_b, idx_c = rest[~dynamic[n_a:]], rest[dynamic[n_a:]]
-        perm = torch.cat([idx_b, torch.arange(n_a, device=coords.device), idx_c])
-        n_b = idx_b.numel()
-        cp = coords[perm]
+        rest = dynamic[n_a:]
+        n_c = int(rest.sum())
+        n_b = n - n_a - n_c
+        inv = None
+        cp = coords
+        if bool(rest[:n_b].any()):  # not in run order: permute into A, B, C
+            idx = torch.arange(n_a, n, device=coords.device)
+            perm = torch.cat([torch.arange(n_a, device=coords.device), idx[~rest], idx[rest]])
+            cp = coords[perm]
+            inv = torch.empty_like(perm)
+            inv[perm] = torch.arange(n, device=perm.device)
+        end_b = n_a + n_b
         g_a = dynamic[:n_a].to(coords.dtype).reshape(1, -1)
-        stat_rows, dyn_rows = cp[: n_b + n_a], cp[n_b:]  # gradient-carrying points of each side
+        stat_rows, stat_blocked = cp[:end_b], cp[end_b:]  # A, B carry the static planes' gradients; C not
+        dyn_rows = torch.cat([cp[:n_a], cp[end_b:]])  # A, C carry the dynamic planes' gradients
+        dyn_blocked = cp[n_a:end_b]  # B
         d = self.config.features
         time_gate = self.config.time_gate
         feats, masks, mask_feats, stat_space, dyn_space = [], [], [], [], []
         stat_parts, dyn_parts = [], []
         for s in range(self.n_scales):
-            dyn_g = dyn_n = time_g = time_n = None
+            dyn_g = dyn_n = time_g = time_n = None  # products over the planes on rows A, C (g) and B (n)
             for k, (a, b) in enumerate(SPACE_PLANES + TIME_PLANES):
                 plane = self.dynamic_planes[6 * s + k]
                 f = sample_plane_cn(plane, dyn_rows[:, a], dyn_rows[:, b])
                 with torch.no_grad():
-                    f_n = sample_plane_cn(plane, cp[:n_b, a], cp[:n_b, b])
+                    f_n = sample_plane_cn(plane, dyn_blocked[:, a], dyn_blocked[:, b])
                 if k >= 3:
-                    m_b = sample_plane_cn(plane[:, d:], cp[:n_b, a], cp[:n_b, b])
+                    m_b = sample_plane_cn(plane[:, d:], dyn_blocked[:, a], dyn_blocked[:, b])
                     m = f[d:]
-                    masks.append(torch.cat([m_b, m], dim=1))
-                    mask_feats.append(torch.cat([m_b.detach(), gate_grad(m[:, :n_a], g_a), m[:, n_a:]], dim=1))
+                    masks.append(torch.cat([m[:, :n_a], m_b, m[:, n_a:]], dim=1))
+                    mask_feats.append(torch.cat([gate_grad(m[:, :n_a], g_a), m_b.detach(), m[:, n_a:]], dim=1))
                     f, f_n = f[:d], f_n[:d]
                 else:
                     dyn_space.append(f[:, :n_a].t())
@@ -379,23 +392,23 @@ class KPlanesEncoding(nn.Module):
                 plane = self.static_planes[3 * s + k]
                 f = sample_plane_cn(plane, stat_rows[:, a], stat_rows[:, b])
                 with torch.no_grad():
-                    f_n = sample_plane_cn(plane, cp[n_b + n_a:, a], cp[n_b + n_a:, b])
-                stat_space.append(f[:, n_b:].t())
+                    f_n = sample_plane_cn(plane, stat_blocked[:, a], stat_blocked[:, b])
+                stat_space.append(f[:, :n_a].t())
                 stat_g = f if stat_g is None else stat_g * f
                 stat_n = f_n if stat_n is None else stat_n * f_n
-            stat_parts.append(torch.cat([stat_g[:, :n_b], gate_grad(stat_g[:, n_b:], 1.0 - g_a), stat_n], dim=1))
+            stat_parts.append(torch.cat([gate_grad(stat_g[:, :n_a], 1.0 - g_a), stat_g[:, n_a:], stat_n], dim=1))
         p_n = p_g = None
         if time_gate:
-            p = _time_gate_prob(masks)  # (1, n), in the permuted order: B rows, then A and C
-            p_n, p_g = p[:, :n_b], p[:, n_b:]
+            p = _time_gate_prob(masks)  # (1, n) in run order A, B, C
+            p_n, p_g = p[:, n_a:end_b], torch.cat([p[:, :n_a], p[:, end_b:]], dim=1)
         for stat, (dyn_g, dyn_n, time_g, time_n) in zip(stat_parts, dyn_parts, strict=True):
             dyn_g, dyn_n = _dynamic_features(dyn_g, time_g, p_g), _dynamic_features(dyn_n, time_n, p_n)
-            feats += [stat, torch.cat([dyn_n, gate_grad(dyn_g[:, :n_a], g_a), dyn_g[:, n_a:]], dim=1)]
-        inv = torch.empty_like(perm)
-        inv[perm] = torch.arange(n, device=perm.device)
-        return {"features": torch.cat(feats + mask_feats, dim=0).t()[inv],
-                "mask_values": torch.cat(masks, dim=0).t()[inv],
-                "static_space": stat_space, "dynamic_space": dyn_space}
+            feats += [stat, torch.cat([gate_grad(dyn_g[:, :n_a], g_a), dyn_n, dyn_g[:, n_a:]], dim=1)]
+        features, mask_values = torch.cat(feats + mask_feats, dim=0).t(), torch.cat(masks, dim=0).t()
+        if inv is not None:
+            features, mask_values = features[inv], mask_values[inv]
+        return {"features": features, "mask_values": mask_values, "static_space": stat_space,
+                "dynamic_space": dyn_space}
 
     # ---- regularisers (K-Planes) ----------------------------------------------------------
     def total_variation(self) -> torch.Tensor:

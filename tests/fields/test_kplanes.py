@@ -140,10 +140,12 @@ def test_time_gate_hand_values_static_where_the_mask_says_nobody_is():
 
 @pytest.mark.parametrize("time_gate", [False, True])
 @pytest.mark.parametrize("pattern,space_points", [("mixed", 24), ("mixed", None), ("mixed", 0), ("static", 24),
-                                                  ("dynamic", 24), ("mixed", 1000)])
+                                                  ("dynamic", 24), ("mixed", 1000), ("runs", 24), ("runs", 0)])
 def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, time_gate):
     """The fast path (planes sampled with autograd only where the gate lets gradients through) gives the
-    values and the gradients of planes and coordinates that gating every sample gives."""
+    values and the gradients of planes and coordinates that gating every sample gives, whether the points
+    come in any order ("mixed": permuted and back) or already in its runs ("runs": the space points,
+    then static, then dynamic ones, as the trainer orders its rays; used in place)."""
     torch.manual_seed(3)
     cfg = KPlanesConfig(base_resolution=(5, 4, 3), multipliers=(1, 2), time_resolution=6, features=3, extended=True,
                         time_gate=time_gate)
@@ -153,7 +155,9 @@ def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, t
             p.add_(0.3 * torch.randn_like(p))
     n = 96
     x0, t = torch.rand(n, 3), torch.rand(n)
-    gate = {"mixed": (torch.rand(n) < 0.3).float(), "static": torch.zeros(n), "dynamic": torch.ones(n)}[pattern]
+    mixed = (torch.rand(n) < 0.3).float()
+    runs = torch.cat([mixed[:24], torch.zeros(50), torch.ones(n - 74)])
+    gate = {"mixed": mixed, "runs": runs, "static": torch.zeros(n), "dynamic": torch.ones(n)}[pattern]
     w_feat, w_mask = torch.randn(n, enc.out_dim), torch.randn(n, 3 * 2)
 
     def run(split: bool):
