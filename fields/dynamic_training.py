@@ -131,6 +131,11 @@ class DynamicFitConfig:
     empty_from: float = 0.1
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
+    #: extended with ``gate`` only: order each batch's rays into the runs that the gated encoding samples in
+    #: place (:func:`gate_run_order`). Per step the loss and gradients are the same; 8-11 % more steps fit in
+    #: a budget, yet held-out PSNR at 900 s was 0.5 dB lower (four seeds against three, SfM poses, 300
+    #: frames; bench/RESULTS.md, Table III session 26), so off
+    gate_ray_runs: bool = False
     #: extended only: the dynamic time planes act on ``f_d`` in proportion to the point's dynamic
     #: probability (:class:`fields.kplanes.KPlanesConfig` ``time_gate``). None: on when every frame's
     #: pose is SfM-refined, off on telemetry poses. On SfM poses it was worth +1.23 / +2.06 dB held-out
@@ -438,7 +443,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     log.info("%s", why_prior)
     # rays in the runs the gated encoding samples in place (:func:`gate_run_order`); L_cos reads the first
     # ``cos_points`` samples, i.e. the leading whole rays
-    gate_runs = ext and cfg.gate
+    gate_runs = ext and cfg.gate and cfg.gate_ray_runs
     cos_rays = math.ceil(cfg.cos_points / model.sampler.n_samples) if cfg.lambda_cos > 0 else 0
     while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
         share = schedule_progress(step, cfg.iters, train_s, cfg.budget_s)  # of training, 0..1

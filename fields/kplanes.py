@@ -339,9 +339,10 @@ class KPlanesEncoding(nn.Module):
         too. A gate of 0 or 1 scales a gradient to zero or leaves it, so values and gradients equal
         :meth:`_forward_gated`'s (up to the order of float sums).
 
-        Points that already come as A, B, C (the trainer orders its rays so) are used in place; any
-        other order is permuted into it and the outputs back, a gather of the (N, out_dim) features
-        that cost ~0.1 s of a 0.3 s training step on CPU (bench/RESULTS.md, Table III session 25).
+        Points that already come as A, B, C (the trainer orders its rays so with ``gate_ray_runs``)
+        are used in place; any other order is permuted into it and the outputs back: a gather of the
+        (N, out_dim) features and its backward, without which a training step is 6-11 % faster on CPU
+        (bench/RESULTS.md, Table III session 26).
         """
         n = coords.shape[0]
         n_a = n if space_points is None else min(int(space_points), n)

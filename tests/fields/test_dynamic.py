@@ -24,6 +24,7 @@ from fields.dynamic_training import (
     build_model,
     evaluate_dynamic,
     fit_dynamic,
+    gate_run_order,
     load_dynamic_checkpoint,
     ray_shortfall,
     shortfall_stats,
@@ -346,11 +347,22 @@ def test_a_fresh_kplanes_mask_can_start_as_background(dynamic_flight):
             assert probs[..., 0].min() > 0.97
 
 
-def test_box_rays_fit_stays_finite_and_weights_the_mask_losses(dynamic_flight):
+@pytest.mark.parametrize("gate_ray_runs", [False, True])
+def test_box_rays_fit_stays_finite_and_weights_the_mask_losses(dynamic_flight, gate_ray_runs):
     dd = load_dynamic_flight(dynamic_flight)
-    cfg = DynamicFitConfig(kind="kplanes-ext", box_ray_fraction=0.5, mask_init_background=0.99, **TINY)
+    cfg = DynamicFitConfig(kind="kplanes-ext", box_ray_fraction=0.5, mask_init_background=0.99,
+                           gate_ray_runs=gate_ray_runs, **TINY)
     r = fit_dynamic(dd, cfg)
     assert r.step == 3 and all(torch.isfinite(p).all() for p in r.model.parameters())
+
+
+def test_gate_run_order_hand_values():
+    """The leading rays as drawn, then the static rays, then the dynamic ones, each in drawn order."""
+    dynamic = torch.tensor([True, False, True, False, True, True, False])
+    assert gate_run_order(dynamic, 2).tolist() == [0, 1, 3, 6, 2, 4, 5]
+    assert gate_run_order(dynamic, 0).tolist() == [1, 3, 6, 0, 2, 4, 5]
+    assert gate_run_order(dynamic, 99).tolist() == list(range(7))
+    assert gate_run_order(torch.zeros(0, dtype=torch.bool), 4).tolist() == []
 
 
 def test_heldout_mask_boxes_of_a_perfect_mask_match_every_separate_person(dynamic_flight):
