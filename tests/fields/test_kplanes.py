@@ -145,7 +145,7 @@ def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, t
     """The fast path (planes sampled with autograd only where the gate lets gradients through) gives the
     values and the gradients of planes and coordinates that gating every sample gives, whether the points
     come in any order ("mixed": permuted and back) or already in its runs ("runs": the space points,
-    then static, then dynamic ones, as the trainer orders its rays; used in place)."""
+    then static, then dynamic ones, as the trainer orders its rays with ``gate_ray_runs``; used in place)."""
     torch.manual_seed(3)
     cfg = KPlanesConfig(base_resolution=(5, 4, 3), multipliers=(1, 2), time_resolution=6, features=3, extended=True,
                         time_gate=time_gate)
