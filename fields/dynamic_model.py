@@ -121,15 +121,17 @@ class DynamicModel(nn.Module):
     def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, times01: torch.Tensor,
                     image_idx: torch.Tensor | None = None, train: bool = False, with_mask: bool = True,
                     dynamic_gate: torch.Tensor | None = None, with_features: bool = False,
-                    feature_points: int | None = None, generator=None) -> dict:
+                    feature_points: int | None = None, generator=None, jitter_rows=None) -> dict:
         """Render R rays at times ``times01`` (R,): ``rgb`` (R,3), ``acc``, ``depth`` (R,1),
         ``weights`` (R,S), ``t_norm`` (R,S+1), ``mask_probs`` (R,C+1) with ``with_mask``; extended
         models add ``dynamic_prob`` (R,) (weight-composited mask channel, weights detached) and with
         ``with_features`` the per-sample plane features for ``L_cos`` (of the first ``feature_points``
         samples, in ray order; None: all). ``dynamic_gate`` (R,) in [0, 1]: 1 = the ray's pixel lies
-        inside a person box (extended models only)."""
+        inside a person box (extended models only). ``jitter_rows`` (R,): see
+        :meth:`fields.samplers.StratifiedSampler.edges`."""
         f = self.field
-        edges = self.sampler.edges(origins, dirs, f.lo, f.hi, train=train, generator=generator)
+        edges = self.sampler.edges(origins, dirs, f.lo, f.hi, train=train, generator=generator,
+                                   jitter_rows=jitter_rows)
         r, s1 = edges.shape
         s = s1 - 1
         mid, deltas, pts = sample_points(origins, dirs, edges)

@@ -132,10 +132,11 @@ class DynamicFitConfig:
     #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
     gate: bool = True
     #: extended with ``gate`` only: order each batch's rays into the runs that the gated encoding samples in
-    #: place (:func:`gate_run_order`). Per step the loss and gradients are the same; 8-11 % more steps fit in
-    #: a budget, yet held-out PSNR at 900 s was 0.5 dB lower (four seeds against three, SfM poses, 300
-    #: frames; bench/RESULTS.md, Table III session 26), so off
-    gate_ray_runs: bool = False
+    #: place (:func:`gate_run_order`); each ray keeps the jitter it was drawn with, so a step computes what
+    #: the drawn order would, up to float summation order. 7-11 % more steps fit in a budget; held-out PSNR
+    #: at 900 s is within the fit's run-to-run spread (~0.8 dB at one seed; bench/RESULTS.md, Table III
+    #: sessions 26 and 27)
+    gate_ray_runs: bool = True
     #: extended only: the dynamic time planes act on ``f_d`` in proportion to the point's dynamic
     #: probability (:class:`fields.kplanes.KPlanesConfig` ``time_gate``). None: on when every frame's
     #: pose is SfM-refined, off on telemetry poses. On SfM poses it was worth +1.23 / +2.06 dB held-out
@@ -459,6 +460,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         if n_box:
             k = torch.randint(len(pos_frame), (n_box,), device=dev, generator=gen)
             fi, pi = torch.cat([fi, pos_frame[k]]), torch.cat([pi, pos_pixel[k]])
+        order = None
         if gate_runs:
             order = gate_run_order(masks[fi, pi] > 0, cos_rays)
             fi, pi = fi[order], pi[order]
@@ -473,7 +475,8 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         mask_w = iw[(cls > 0).long()]  # importance weights of the per-ray losses (all 1 without box rays)
         gate = dyn if (ext and cfg.gate) else None
         res = model.render_rays(o, d, t01[fi], fi, train=True, with_mask=cfg.lambda_mask > 0, dynamic_gate=gate,
-                                with_features=ext and cfg.lambda_cos > 0, feature_points=cfg.cos_points, generator=gen)
+                                with_features=ext and cfg.lambda_cos > 0, feature_points=cfg.cos_points, generator=gen,
+                                jitter_rows=order)
         loss_rgb = torch.mean(((res["rgb"] - target) ** 2).mean(-1) * mask_w)
         loss = loss_rgb + regularisers(model, cfg)
         if model.pose_drift is not None and cfg.lambda_pose > 0:
@@ -537,9 +540,9 @@ def gate_run_order(dynamic: torch.Tensor, lead: int) -> torch.Tensor:
     """Order (R,) of a batch's rays for the gated extended encoding: the first ``lead`` rays as drawn (those
     ``L_cos`` reads), then the other static rays, then the other dynamic ones (``dynamic`` (R,) bool, True
     inside a person box), each run in its drawn order. The encoding samples points in these runs without
-    permuting them (:meth:`fields.kplanes.KPlanesEncoding._forward_split`); the losses are means over rays,
-    so a step's loss and gradients are the same in any order (held-out PSNR still measured lower with it:
-    ``DynamicFitConfig.gate_ray_runs``)."""
+    permuting them (:meth:`fields.kplanes.KPlanesEncoding._forward_split`); the losses are means over rays
+    and the trainer hands the sampler the order (``jitter_rows``), so a step's loss and gradients are the
+    same in any order."""
     lead = min(max(int(lead), 0), dynamic.shape[0])
     rest = torch.argsort(dynamic[lead:].to(torch.uint8), stable=True) + lead
     return torch.cat([torch.arange(lead, device=dynamic.device), rest])

@@ -52,12 +52,17 @@ class StratifiedSampler:
     def __init__(self, n_samples: int = 48):
         self.n_samples = int(n_samples)
 
-    def edges(self, origins, dirs, lo, hi, train: bool, generator=None) -> torch.Tensor:
+    def edges(self, origins, dirs, lo, hi, train: bool, generator=None, jitter_rows=None) -> torch.Tensor:
+        """(R, n+1) interval edges along each ray (distances from its origin, metres). ``jitter_rows`` (R,)
+        long: ray i takes row ``jitter_rows[i]`` of the jitter drawn for the batch, so rays reordered after
+        they were drawn keep the jitter they were drawn with (None: row i)."""
         near, far, _ = ray_box(origins, dirs, lo, hi)
         n = self.n_samples
         u = torch.linspace(0.0, 1.0, n + 1, device=origins.device).expand(origins.shape[0], n + 1)
         if train:
             jitter = (torch.rand(origins.shape[0], n, device=origins.device, generator=generator) - 0.5) / n
+            if jitter_rows is not None:
+                jitter = jitter[jitter_rows]
             u = torch.cat([u[:, :1], (u[:, 1:-1] + jitter[:, 1:]).clamp(0, 1), u[:, -1:]], dim=-1)
         return near[:, None] + (far - near)[:, None] * u
 

@@ -347,13 +347,19 @@ def test_a_fresh_kplanes_mask_can_start_as_background(dynamic_flight):
             assert probs[..., 0].min() > 0.97
 
 
-@pytest.mark.parametrize("gate_ray_runs", [False, True])
-def test_box_rays_fit_stays_finite_and_weights_the_mask_losses(dynamic_flight, gate_ray_runs):
+def test_box_rays_fit_stays_finite_and_ray_runs_change_nothing_but_speed(dynamic_flight):
+    """With box rays and mask losses the fit stays finite; ordering the rays into the gated encoding's
+    runs (``gate_ray_runs``) keeps each ray's jitter, so the same seed fits the same parameters."""
     dd = load_dynamic_flight(dynamic_flight)
-    cfg = DynamicFitConfig(kind="kplanes-ext", box_ray_fraction=0.5, mask_init_background=0.99,
-                           gate_ray_runs=gate_ray_runs, **TINY)
-    r = fit_dynamic(dd, cfg)
-    assert r.step == 3 and all(torch.isfinite(p).all() for p in r.model.parameters())
+    fits = []
+    for runs in (False, True):
+        cfg = DynamicFitConfig(kind="kplanes-ext", box_ray_fraction=0.5, mask_init_background=0.99,
+                               gate_ray_runs=runs, **TINY)
+        fits.append(fit_dynamic(dd, cfg))
+    for r in fits:
+        assert r.step == 3 and all(torch.isfinite(p).all() for p in r.model.parameters())
+    for a, b in zip(fits[0].model.parameters(), fits[1].model.parameters()):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
 
 
 def test_gate_run_order_hand_values():

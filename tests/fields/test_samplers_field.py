@@ -53,6 +53,21 @@ def test_stratified_edges_cover_segment():
     assert torch.allclose(e[0, 0], torch.tensor(10.0)) and torch.allclose(e[0, -1], torch.tensor(15.5))
 
 
+def test_stratified_jitter_follows_reordered_rays():
+    # rays drawn in one order and sampled in another keep the jitter they were drawn with
+    gen = torch.Generator().manual_seed(3)
+    o = torch.rand(9, 3, generator=gen) * 4 + torch.tensor([0.0, 0.0, 12.0])
+    d = torch.nn.functional.normalize(torch.rand(9, 3, generator=gen) - torch.tensor([0.5, 0.5, 1.5]), dim=-1)
+    order = torch.randperm(9, generator=gen)
+    sampler = StratifiedSampler(6)
+    drawn = sampler.edges(o, d, LO, HI, train=True, generator=torch.Generator().manual_seed(7))
+    moved = sampler.edges(o[order], d[order], LO, HI, train=True, generator=torch.Generator().manual_seed(7),
+                          jitter_rows=order)
+    assert torch.equal(moved, drawn[order])
+    plain = sampler.edges(o[order], d[order], LO, HI, train=True, generator=torch.Generator().manual_seed(7))
+    assert not torch.equal(plain, drawn[order])  # without it the jitter stays with the batch position
+
+
 def test_sample_pdf_concentrates_near_peak():
     edges = torch.linspace(0, 1, 11).expand(2, 11).contiguous()
     w = torch.zeros(2, 10)
