@@ -358,7 +358,7 @@ def test_box_rays_fit_stays_finite_and_ray_runs_change_nothing_but_speed(dynamic
         fits.append(fit_dynamic(dd, cfg))
     for r in fits:
         assert r.step == 3 and all(torch.isfinite(p).all() for p in r.model.parameters())
-    for a, b in zip(fits[0].model.parameters(), fits[1].model.parameters()):
+    for a, b in zip(fits[0].model.parameters(), fits[1].model.parameters(), strict=True):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
 
 
