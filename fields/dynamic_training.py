@@ -445,7 +445,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     # rays in the runs the gated encoding samples in place (:func:`gate_run_order`); L_cos reads the first
     # ``cos_points`` samples, i.e. the leading whole rays
     gate_runs = ext and cfg.gate and cfg.gate_ray_runs
-    cos_rays = math.ceil(cfg.cos_points / model.sampler.n_samples) if cfg.lambda_cos > 0 else 0
+    cos_rays = math.ceil(cfg.cos_points / model.sampler.n_samples) if gate_runs and cfg.lambda_cos > 0 else 0
     while step < cfg.iters and (cfg.budget_s is None or train_s < cfg.budget_s):
         share = schedule_progress(step, cfg.iters, train_s, cfg.budget_s)  # of training, 0..1
         decay = cfg.lr_final ** share
