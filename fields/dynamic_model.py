@@ -201,14 +201,15 @@ class DynamicModel(nn.Module):
 def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_images: int, n_classes: int,
                       features: int = 16, hidden: int = 64, appearance_dim: int = 8,
                       mask_init_background: float | None = None, mask_encoding: str = "geometry",
-                      time_gate: bool = False) -> KPlanesFieldConfig:
+                      time_gate: bool = False, dynamic_z_top: float = 1.0) -> KPlanesFieldConfig:
     """Field config for ``kind`` over the slab ``bounds``; time resolution = half the frames;
-    ``time_gate``: see :class:`fields.kplanes.KPlanesConfig` (extended only)."""
+    ``time_gate``, ``dynamic_z_top``: see :class:`fields.kplanes.KPlanesConfig` (extended only)."""
     from fields.dynamic_data import time_resolution
 
     planes = KPlanesConfig(base_resolution=sizing.base_resolution, multipliers=sizing.multipliers,
                            time_resolution=time_resolution(n_frames), features=features,
-                           extended=(kind == "kplanes-ext"), time_gate=time_gate and kind == "kplanes-ext")
+                           extended=(kind == "kplanes-ext"), time_gate=time_gate and kind == "kplanes-ext",
+                           dynamic_z_top=dynamic_z_top if kind == "kplanes-ext" else 1.0)
     return KPlanesFieldConfig(aabb_lo=tuple(bounds.lo), aabb_hi=tuple(bounds.hi), planes=planes, hidden=hidden,
                               n_images=n_images, appearance_dim=appearance_dim, n_classes=n_classes,
                               mask_init_background=mask_init_background, mask_encoding=mask_encoding)

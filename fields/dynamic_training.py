@@ -145,6 +145,10 @@ class DynamicFitConfig:
     #: the pose-drift knots; without them +0.32 dB)
     #: (bench/RESULTS.md, Table III session 11)
     time_gate: bool | None = None
+    #: extended only: the dynamic planes cover the layer from the ground up to this height, metres (people
+    #: stand up to ~1.9 m); above it the field is static (:class:`fields.kplanes.KPlanesConfig`
+    #: ``dynamic_z_top``). None: the whole box
+    dynamic_height_m: float | None = None
     #: learn a time-smooth correction of the telemetry poses (:mod:`fields.pose_drift`) with one
     #: knot per this many seconds of flight (None: take the poses as given). Worth +0.85 / +2.44 dB
     #: held-out to extended K-Planes on the 80 / 300-frame bench flights, +0.18 / +0.05 dB to stock
@@ -225,19 +229,36 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     bounds = scene_bounds(flight, data.camera, [data.cam_from_world[i] for i in train_idx])
     sizing = plane_sizing(bounds.extent, bounds.finest_gsd_m, cfg.max_resolution, cfg.cell_factor)
     gate, why_gate = time_gate(dd, cfg)
+    z_top, why_layer = dynamic_layer_top(bounds, cfg.dynamic_height_m)
     fc = make_field_config(cfg.kind, bounds, sizing, dd.n, data.n, len(data.classes), cfg.features, cfg.hidden,
-                           cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, gate)
+                           cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, gate, z_top)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     knots, coarse, why = pose_knots(dd, cfg)
     sizing.reasoning.append(why)
     if cfg.kind == "kplanes-ext":
-        sizing.reasoning.append(why_gate)
+        sizing.reasoning += [why_gate, why_layer]
     sizing.reasoning.append(air_prior(dd, cfg)[1])
     frame_t01 = dd.t01()[train_idx].tolist() if knots and cfg.pose_per_frame else []  # rows: training frames
     model = DynamicModel(cfg.kind, fc, SamplerConfig("stratified", cfg.n_samples), bounds.ground_z, radius,
                          dd.t0_us, dd.span_us, pose_knots=knots, pose_coarse_knots=coarse, pose_frame_t01=frame_t01)
     return model, bounds, asdict(sizing)
+
+
+def dynamic_layer_top(bounds: SceneBounds, height_m: float | None) -> tuple[float, str]:
+    """The normalised box height (0, 1] up to which the dynamic planes reach: ``height_m`` above the
+    ground (``bounds.ground_z``, world ENU z up), and why. None, or a layer reaching the box top: 1."""
+    lo_z, hi_z = float(bounds.lo[2]), float(bounds.hi[2])
+    if height_m is None:
+        return 1.0, "dynamic planes: the whole box height"
+    if not (math.isfinite(height_m) and height_m > 0):
+        raise ValueError(f"dynamic_height_m must be a positive number of metres, got {height_m}")
+    top = (bounds.ground_z + height_m - lo_z) / (hi_z - lo_z)
+    if top >= 1.0:
+        return 1.0, f"dynamic planes: the whole box height ({hi_z - lo_z:.2f} m <= ground + {height_m:g} m)"
+    top = max(top, 1e-3)
+    return top, (f"dynamic planes: the lowest {top * (hi_z - lo_z):.2f} m of the {hi_z - lo_z:.2f} m box (ground + "
+                 f"{height_m:g} m), the layer people walk in; static above")
 
 
 def time_gate(dd: DynamicFlightData, cfg: DynamicFitConfig) -> tuple[bool, str]:

@@ -26,6 +26,7 @@ training frames with and that the held-out instants in between did not share.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -162,12 +163,33 @@ class KPlanesConfig:
     #: time planes. Where nobody walks (p -> 0) ``f_d`` is the time-invariant ``S_d``, not a pattern that
     #: a time plane, shared along a line, picks up from every person's rays at that instant.
     time_gate: bool = False
+    #: extended only: the dynamic planes span the normalised heights [0, ``dynamic_z_top``] of the box, the
+    #: layer people walk in, with their z resolution cut to match (cells as tall as the static planes').
+    #: Above it a point is static: ``f_d`` = 0, mask values "static" (logit :data:`STATIC_LOGIT`), no
+    #: gradient to the dynamic planes from it (``L_cos`` still reads their top row there). 1: the whole box
+    dynamic_z_top: float = 1.0
 
     def resolutions(self) -> list[tuple[int, int, int]]:
         return [tuple(int(r * m) for r in self.base_resolution) for m in self.multipliers]
 
+    def dynamic_resolutions(self) -> list[tuple[int, int, int]]:
+        """Grid points along (x, y, z) of the dynamic planes per scale: z over the dynamic layer only."""
+        zt = self.layer_top()
+        return [(rx, ry, rz if zt >= 1.0 else max(2, math.ceil(rz * zt))) for rx, ry, rz in self.resolutions()]
+
+    def layer_top(self) -> float:
+        """``dynamic_z_top`` checked: in (0, 1]; stock K-Planes always 1 (one set of planes for everything)."""
+        zt = float(self.dynamic_z_top)
+        if not (0.0 < zt <= 1.0):
+            raise ValueError(f"dynamic_z_top must be in (0, 1], got {zt}")
+        return zt if self.extended else 1.0
+
     def to_json(self) -> dict:
         return asdict(self)
+
+
+#: the mask logit a point above the dynamic layer reports: sigmoid(-30) ~ 1e-13, static
+STATIC_LOGIT = -30.0
 
 
 def _plane(channels: int, rv: int, ru: int, value: float | None, low: float, high: float) -> nn.Parameter:
@@ -196,15 +218,15 @@ class KPlanesEncoding(nn.Module):
         T = config.time_resolution
         self.static_planes = nn.ParameterList()
         self.dynamic_planes = nn.ParameterList()
-        for res in config.resolutions():
+        for res, dres in zip(config.resolutions(), config.dynamic_resolutions(), strict=True):
             if config.extended:
                 for a, b in SPACE_PLANES:
                     self.static_planes.append(_plane(d, res[b], res[a], None, lo, hi))
             for a, b in SPACE_PLANES:
-                self.dynamic_planes.append(_plane(d, res[b], res[a], None, lo, hi))
+                self.dynamic_planes.append(_plane(d, dres[b], dres[a], None, lo, hi))
             extra = 1 if config.extended else 0
             for a, _ in TIME_PLANES:
-                p = _plane(d + extra, T, res[a], 1.0, lo, hi)
+                p = _plane(d + extra, T, dres[a], 1.0, lo, hi)
                 if extra:
                     with torch.no_grad():
                         p[:, d:] = 0.0  # mask logit 0 = undecided
@@ -275,10 +297,32 @@ class KPlanesEncoding(nn.Module):
     #: use :meth:`_forward_split` for hard gates (False: always :meth:`_forward_gated`, the reference)
     split_hard_gate = True
 
+    def _layer(self, coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The coordinates (N, 4) the dynamic planes read (z stretched over the dynamic layer,
+        ``KPlanesConfig.dynamic_z_top``) and which points lie in the layer, (1, N) bool; when the layer
+        is the whole box: ``coords`` and None."""
+        zt = self.config.layer_top()
+        if zt >= 1.0:
+            return coords, None
+        z = coords[:, 2]
+        stretched = (z / zt).clamp(max=1.0)
+        return torch.cat([coords[:, :2], stretched[:, None], coords[:, 3:]], dim=1), (z <= zt).reshape(1, -1)
+
+    @staticmethod
+    def _outside_layer(values: list[torch.Tensor], fusion_inputs: list[torch.Tensor],
+                       inside: torch.Tensor | None) -> tuple[list, list]:
+        """The time planes' mask channels (each (1, N)) as mask values (above the layer:
+        :data:`STATIC_LOGIT`) and as fusion inputs (above the layer: 0)."""
+        if inside is None:
+            return values, fusion_inputs
+        return ([torch.where(inside, m, STATIC_LOGIT) for m in values],
+                [torch.where(inside, m, 0.0) for m in fusion_inputs])
+
     def _forward_gated(self, coords: torch.Tensor, dynamic_gate: torch.Tensor | None) -> dict:
         """Every plane sampled at every point; the gate scales gradients afterwards (:func:`gate_grad`)."""
         x = coords[:, :3]
         d = self.config.features
+        dcoords, inside = self._layer(coords)
         # features are (C, N) inside: contiguous products; one transpose at the end
         feats, masks, stat_space, dyn_space = [], [], [], []
         time_gate = self.config.extended and self.config.time_gate
@@ -286,7 +330,7 @@ class KPlanesEncoding(nn.Module):
         for s in range(self.n_scales):
             dyn = times = None
             for k, (a, b) in enumerate(SPACE_PLANES + TIME_PLANES):
-                f = sample_plane_cn(self.dynamic_planes[6 * s + k], coords[:, a], coords[:, b])
+                f = sample_plane_cn(self.dynamic_planes[6 * s + k], dcoords[:, a], dcoords[:, b])
                 if k >= 3 and self.config.extended:
                     masks.append(f[d:])
                     f = f[:d]
@@ -304,8 +348,11 @@ class KPlanesEncoding(nn.Module):
                     stat_space.append(f.t())
                     stat = f if stat is None else stat * f
                 stats.append(stat)
+        masks, layer_masks = self._outside_layer(masks, masks, inside)
         p = _time_gate_prob(masks) if time_gate else None
         dyns = [_dynamic_features(dyn, times, p) for dyn, times in dyn_parts]
+        if inside is not None:
+            dyns = [torch.where(inside, f, 0.0) for f in dyns]
         if self.config.extended:
             for stat, dyn in zip(stats, dyns, strict=True):
                 if dynamic_gate is not None:
@@ -315,12 +362,12 @@ class KPlanesEncoding(nn.Module):
                 feats += [stat, dyn]
         else:
             feats = dyns
-        mask_feats = masks
+        mask_feats = layer_masks
         if self.config.extended and dynamic_gate is not None:
             # the mask channel lives on the dynamic time planes: the colour loss of static pixels
             # must not move it either (its own box supervision reads ``mask_values``, ungated)
             g = dynamic_gate.reshape(1, -1).to(x.dtype)
-            mask_feats = [gate_grad(m, g) for m in masks]
+            mask_feats = [gate_grad(m, g) for m in layer_masks]
         out = {"features": torch.cat(feats + mask_feats, dim=0).t()}
         if self.config.extended:
             out["mask_values"] = torch.cat(masks, dim=0).t()
@@ -359,9 +406,10 @@ class KPlanesEncoding(nn.Module):
             inv[perm] = torch.arange(n, device=perm.device)
         end_b = n_a + n_b
         g_a = dynamic[:n_a].to(coords.dtype).reshape(1, -1)
+        dcp, inside = self._layer(cp)  # in run order
         stat_rows, stat_blocked = cp[:end_b], cp[end_b:]  # A, B carry the static planes' gradients; C not
-        dyn_rows = torch.cat([cp[:n_a], cp[end_b:]])  # A, C carry the dynamic planes' gradients
-        dyn_blocked = cp[n_a:end_b]  # B
+        dyn_rows = torch.cat([dcp[:n_a], dcp[end_b:]])  # A, C carry the dynamic planes' gradients
+        dyn_blocked = dcp[n_a:end_b]  # B
         d = self.config.features
         time_gate = self.config.time_gate
         feats, masks, mask_feats, stat_space, dyn_space = [], [], [], [], []
@@ -398,12 +446,18 @@ class KPlanesEncoding(nn.Module):
                 stat_g = f if stat_g is None else stat_g * f
                 stat_n = f_n if stat_n is None else stat_n * f_n
             stat_parts.append(torch.cat([gate_grad(stat_g[:, :n_a], 1.0 - g_a), stat_g[:, n_a:], stat_n], dim=1))
+        masks, mask_feats = self._outside_layer(masks, mask_feats, inside)
+        in_g = in_n = None
+        if inside is not None:
+            in_g, in_n = torch.cat([inside[:, :n_a], inside[:, end_b:]], dim=1), inside[:, n_a:end_b]
         p_n = p_g = None
         if time_gate:
             p = _time_gate_prob(masks)  # (1, n) in run order A, B, C
             p_n, p_g = p[:, n_a:end_b], torch.cat([p[:, :n_a], p[:, end_b:]], dim=1)
         for stat, (dyn_g, dyn_n, time_g, time_n) in zip(stat_parts, dyn_parts, strict=True):
             dyn_g, dyn_n = _dynamic_features(dyn_g, time_g, p_g), _dynamic_features(dyn_n, time_n, p_n)
+            if inside is not None:
+                dyn_g, dyn_n = torch.where(in_g, dyn_g, 0.0), torch.where(in_n, dyn_n, 0.0)
             feats += [stat, torch.cat([gate_grad(dyn_g[:, :n_a], g_a), dyn_n, dyn_g[:, n_a:]], dim=1)]
         features, mask_values = torch.cat(feats + mask_feats, dim=0).t(), torch.cat(masks, dim=0).t()
         if inv is not None:

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from fields.kplanes import (
+    STATIC_LOGIT,
     KPlanesConfig,
     KPlanesEncoding,
     KPlanesField,
@@ -138,17 +139,18 @@ def test_time_gate_hand_values_static_where_the_mask_says_nobody_is():
     assert all(p.grad[:, :1].abs().sum() > 0 for p in enc.dynamic_planes[3:])  # time features: p x the stock one
 
 
+@pytest.mark.parametrize("z_top", [1.0, 0.45])
 @pytest.mark.parametrize("time_gate", [False, True])
 @pytest.mark.parametrize("pattern,space_points", [("mixed", 24), ("mixed", None), ("mixed", 0), ("static", 24),
                                                   ("dynamic", 24), ("mixed", 1000), ("runs", 24), ("runs", 0)])
-def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, time_gate):
+def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, time_gate, z_top):
     """The fast path (planes sampled with autograd only where the gate lets gradients through) gives the
     values and the gradients of planes and coordinates that gating every sample gives, whether the points
     come in any order ("mixed": permuted and back) or already in its runs ("runs": the space points,
     then static, then dynamic ones, as the trainer orders its rays with ``gate_ray_runs``; used in place)."""
     torch.manual_seed(3)
     cfg = KPlanesConfig(base_resolution=(5, 4, 3), multipliers=(1, 2), time_resolution=6, features=3, extended=True,
-                        time_gate=time_gate)
+                        time_gate=time_gate, dynamic_z_top=z_top)
     enc = KPlanesEncoding(cfg)
     with torch.no_grad():
         for p in enc.dynamic_planes:  # time planes away from their initial 1 / 0, so every gradient is non-trivial
@@ -183,6 +185,62 @@ def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, t
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4)
     assert torch.allclose(fast_x, ref_x, atol=1e-5, rtol=1e-4)
     assert any(g.abs().sum() > 0 for g in ref_grads)
+
+
+@pytest.mark.parametrize("time_gate", [False, True])
+def test_above_the_dynamic_layer_a_point_is_static(time_gate):
+    """With ``dynamic_z_top`` 0.4 the dynamic planes have 40 % of the z grid points; a point above the layer
+    has f_d = 0, "static" mask values and the same features at every time, and sends no gradient to the
+    dynamic planes; below it the planes read z stretched over the layer."""
+    torch.manual_seed(0)
+    cfg = KPlanesConfig(base_resolution=(4, 4, 10), multipliers=(1, 2), time_resolution=5, features=2,
+                        extended=True, time_gate=time_gate, dynamic_z_top=0.4)
+    enc = KPlanesEncoding(cfg)
+    assert [tuple(p.shape[2:]) for p in enc.dynamic_planes[:6]] == [(4, 4), (4, 4), (4, 4), (5, 4), (5, 4), (5, 4)]
+    assert enc.static_planes[1].shape[2:] == (10, 4)  # xz: z rows, the whole box
+    with torch.no_grad():
+        for p in enc.dynamic_planes:
+            p.add_(0.3 * torch.randn_like(p))
+    high = torch.tensor([[0.3, 0.6, 0.41], [0.9, 0.1, 1.0]])
+    per_t = [enc(high, torch.full((2,), t)) for t in (0.0, 0.37, 1.0)]
+    for out in per_t:
+        f = out["features"]
+        assert torch.equal(f, per_t[0]["features"])
+        assert torch.equal(f[:, 2:4], torch.zeros(2, 2)) and torch.equal(f[:, 6:8], torch.zeros(2, 2))  # f_d
+        assert torch.equal(f[:, 8:], torch.zeros(2, 6))  # mask inputs of the fusion
+        assert torch.equal(out["mask_values"], torch.full((2, 6), STATIC_LOGIT))
+    enc(high, torch.rand(2), dynamic_gate=torch.ones(2))["features"].sum().backward()
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in enc.dynamic_planes)
+    # below the layer: the stretched z reads the dynamic planes as a box of 40 % the height would
+    low = torch.tensor([[0.3, 0.6, 0.2]])
+    plain = KPlanesEncoding(KPlanesConfig(base_resolution=(4, 4, 4), multipliers=(1, 2), time_resolution=5,
+                                          features=2, extended=True, time_gate=time_gate))
+    with torch.no_grad():
+        for a, b in zip(plain.dynamic_planes, enc.dynamic_planes, strict=True):
+            a.copy_(b)
+    t = torch.tensor([0.6])
+    dyn_cols = torch.tensor([2, 3, 6, 7, 8, 9, 10, 11, 12, 13])  # f_d of both scales, the mask inputs
+    got = enc(low, t)["features"][:, dyn_cols]
+    want = plain(torch.tensor([[0.3, 0.6, 0.5]]), t)["features"][:, dyn_cols]
+    assert torch.allclose(got, want, atol=1e-6)
+
+
+def test_dynamic_layer_top_from_the_ground_and_a_height():
+    from fields.dynamic_training import dynamic_layer_top
+    from fields.scene import SceneBounds
+
+    b = SceneBounds(lo=(0.0, 0.0, -0.5), hi=(10.0, 10.0, 5.5), ground_z=0.0, source="test", finest_gsd_m=0.1,
+                    median_gsd_m=0.1)
+    assert dynamic_layer_top(b, None)[0] == 1.0
+    top, why = dynamic_layer_top(b, 2.5)
+    assert top == pytest.approx(0.5) and "3.00 m of the 6.00 m box" in why
+    assert dynamic_layer_top(b, 8.0)[0] == 1.0
+    with pytest.raises(ValueError):
+        dynamic_layer_top(b, float("nan"))
+    with pytest.raises(ValueError):
+        KPlanesEncoding(KPlanesConfig(extended=True, dynamic_z_top=0.0))
+    stock = KPlanesConfig(base_resolution=(2, 2, 8), dynamic_z_top=0.5)  # stock: one set of planes, whole box
+    assert stock.dynamic_resolutions() == stock.resolutions()
 
 
 def test_soft_gates_and_inference_take_the_gated_path():
