@@ -95,6 +95,14 @@ def _dynamic_features(dyn: torch.Tensor, times: torch.Tensor | None, p: torch.Te
     return dyn if times is None else dyn * (1.0 + p * (times - 1.0))
 
 
+def _spread(x: torch.Tensor | None, keep: torch.Tensor | None, width: int) -> torch.Tensor | None:
+    """Columns ``x`` (C, K) read at the columns ``keep`` (K,) of a run ``width`` wide, as (C, width) with
+    zeros elsewhere (differentiable in ``x``); ``keep`` None: ``x`` is the whole run already."""
+    if x is None or keep is None:
+        return x
+    return x.new_zeros(x.shape[0], width).index_copy(1, keep, x)
+
+
 def coarse_to_fine_weights(n_scales: int, progress: float, until: float) -> torch.Tensor:
     """Per-scale feature weights (n_scales,) at ``progress`` in [0, 1] of training, as BARF fades in
     positional-encoding bands: the coarsest scale always 1; scale ``s >= 1`` rises from 0 to 1 along
@@ -390,6 +398,9 @@ class KPlanesEncoding(nn.Module):
         are used in place; any other order is permuted into it and the outputs back: a gather of the
         (N, out_dim) features and its backward, without which a training step is 6-11 % faster on CPU
         (bench/RESULTS.md, Table III session 26).
+
+        With a dynamic layer (``KPlanesConfig.dynamic_z_top`` < 1) the dynamic planes are read on B and C
+        only inside the layer: above it their values are replaced anyway (:meth:`_outside_layer`, ``f_d`` 0).
         """
         n = coords.shape[0]
         n_a = n if space_points is None else min(int(space_points), n)
@@ -410,6 +421,12 @@ class KPlanesEncoding(nn.Module):
         stat_rows, stat_blocked = cp[:end_b], cp[end_b:]  # A, B carry the static planes' gradients; C not
         dyn_rows = torch.cat([dcp[:n_a], dcp[end_b:]])  # A, C carry the dynamic planes' gradients
         dyn_blocked = dcp[n_a:end_b]  # B
+        n_g = n - n_b
+        keep_g = keep_n = None  # with a layer: the columns of (A, C) and of B that read the dynamic planes
+        if inside is not None:  # every A point (``L_cos`` reads it), and B and C inside the layer
+            keep_g = torch.cat([torch.arange(n_a, device=cp.device), n_a + inside[0, end_b:].nonzero().squeeze(1)])
+            keep_n = inside[0, n_a:end_b].nonzero().squeeze(1)
+            dyn_rows, dyn_blocked = dyn_rows[keep_g], dyn_blocked[keep_n]
         d = self.config.features
         time_gate = self.config.time_gate
         feats, masks, mask_feats, stat_space, dyn_space = [], [], [], [], []
@@ -422,8 +439,8 @@ class KPlanesEncoding(nn.Module):
                 with torch.no_grad():
                     f_n = sample_plane_cn(plane, dyn_blocked[:, a], dyn_blocked[:, b])
                 if k >= 3:
-                    m_b = sample_plane_cn(plane[:, d:], dyn_blocked[:, a], dyn_blocked[:, b])
-                    m = f[d:]
+                    m_b = _spread(sample_plane_cn(plane[:, d:], dyn_blocked[:, a], dyn_blocked[:, b]), keep_n, n_b)
+                    m = _spread(f[d:], keep_g, n_g)
                     masks.append(torch.cat([m[:, :n_a], m_b, m[:, n_a:]], dim=1))
                     mask_feats.append(torch.cat([gate_grad(m[:, :n_a], g_a), m_b.detach(), m[:, n_a:]], dim=1))
                     f, f_n = f[:d], f_n[:d]
@@ -435,7 +452,8 @@ class KPlanesEncoding(nn.Module):
                 else:
                     dyn_g = f if dyn_g is None else dyn_g * f
                     dyn_n = f_n if dyn_n is None else dyn_n * f_n
-            dyn_parts.append((dyn_g, dyn_n, time_g, time_n))
+            dyn_parts.append((_spread(dyn_g, keep_g, n_g), _spread(dyn_n, keep_n, n_b),
+                              _spread(time_g, keep_g, n_g), _spread(time_n, keep_n, n_b)))
             stat_g = stat_n = None
             for k, (a, b) in enumerate(SPACE_PLANES):
                 plane = self.static_planes[3 * s + k]

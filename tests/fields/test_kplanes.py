@@ -209,8 +209,12 @@ def test_above_the_dynamic_layer_a_point_is_static(time_gate):
         assert torch.equal(f[:, 2:4], torch.zeros(2, 2)) and torch.equal(f[:, 6:8], torch.zeros(2, 2))  # f_d
         assert torch.equal(f[:, 8:], torch.zeros(2, 6))  # mask inputs of the fusion
         assert torch.equal(out["mask_values"], torch.full((2, 6), STATIC_LOGIT))
-    enc(high, torch.rand(2), dynamic_gate=torch.ones(2))["features"].sum().backward()
-    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in enc.dynamic_planes)
+    for gate, space_points in ((torch.ones(2), None), (torch.tensor([0.0, 1.0]), 0)):  # the latter reads no plane
+        enc.zero_grad()
+        out = enc(high, torch.rand(2), dynamic_gate=gate, space_points=space_points)
+        assert torch.equal(out["features"], per_t[0]["features"])
+        (out["features"].sum() + out["mask_values"].sum()).backward()
+        assert all(p.grad is None or p.grad.abs().sum() == 0 for p in enc.dynamic_planes)
     # below the layer: the stretched z reads the dynamic planes as a box of 40 % the height would
     low = torch.tensor([[0.3, 0.6, 0.2]])
     plain = KPlanesEncoding(KPlanesConfig(base_resolution=(4, 4, 4), multipliers=(1, 2), time_resolution=5,
