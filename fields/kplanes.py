@@ -22,6 +22,10 @@ poses): the time planes act on ``f_d`` only as far as the mask value says the po
 plane is shared along a line (zt: every point at one height), so without the gate every person's rays at instant t
 changed ``f_d`` at background points too, a per-instant pattern the fusion MLP learned to fit the
 training frames with and that the held-out instants in between did not share.
+
+The dynamic layer (``KPlanesConfig.dynamic_z_top``; ours): people walk on the ground, so the extended
+variant's dynamic planes may span only the lowest part of the box, with as many z grid points as that part
+needs; above it a point is static (``f_d`` = 0, its mask values "static").
 """
 
 from __future__ import annotations

@@ -582,6 +582,10 @@ def test_pose_drift_is_learned_on_telemetry_poses_and_not_on_sfm_refined_ones(dy
     # the time gate follows the same evidence: on for SfM-refined poses, off for telemetry, or as set
     assert r.model.field_config.planes.time_gate
     assert any(line.startswith("time gate: on") for line in r.sizing["reasoning"])
+    # the dynamic planes span the ground layer by default, sized from the scene box
+    layer = [line for line in r.sizing["reasoning"] if line.startswith("dynamic planes:")]
+    z_top = r.model.field_config.planes.dynamic_z_top
+    assert len(layer) == 1 and 0 < z_top <= 1 and (z_top == 1) == ("whole box" in layer[0])
     assert time_gate(sfm, DynamicFitConfig())[0] and not time_gate(dd, DynamicFitConfig())[0]
     assert time_gate(dd, DynamicFitConfig(time_gate=True)) == (True, "time gate: on (set explicitly)")
     assert not time_gate(sfm, DynamicFitConfig(time_gate=False))[0]
