@@ -18,15 +18,16 @@ from telemetry.frames import camera_center, look_at
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
-    """A tiny extended K-Planes fit (120 steps, ~8 s) on a 64x48 dynamic line flight: enough steps for the
-    field to hold the ground's texture (fewer leave it a flat colour that no pose error changes)."""
+    """A tiny extended K-Planes fit (200 steps, ~12 s) on a 64x48 dynamic line flight: enough steps for the
+    field to hold the ground's texture (fewer leave it a flat colour that no pose error changes; with the
+    dynamic planes over the ground layer, 120 steps were too few)."""
     out = tmp_path_factory.mktemp("align") / "flight"
     world = make_world(seed=5, dynamic=True, texture_size=512, texel_m=0.05)
     camera = Camera.from_fov(64, 48, 70.0, Mount(pitch_deg=-60))
     write_line_flight(out, world, camera, LineSpec(altitude_m=6.0, length_m=4.0, frames=8, dt_s=0.5), PoseNoise(),
                       supersample=1)
     dd = load_dynamic_flight(out)
-    cfg = DynamicFitConfig(kind="kplanes-ext", iters=120, budget_s=None, n_samples=16, batch_rays=512,
+    cfg = DynamicFitConfig(kind="kplanes-ext", iters=200, budget_s=None, n_samples=16, batch_rays=512,
                            max_resolution=32, features=4, hidden=16)
     return dd, fit_dynamic(dd, cfg).model
 
