@@ -469,17 +469,16 @@ class KPlanesEncoding(nn.Module):
                 stat_n = f_n if stat_n is None else stat_n * f_n
             stat_parts.append(torch.cat([gate_grad(stat_g[:, :n_a], 1.0 - g_a), stat_g[:, n_a:], stat_n], dim=1))
         masks, mask_feats = self._outside_layer(masks, mask_feats, inside)
-        in_g = in_n = None
-        if inside is not None:
-            in_g, in_n = torch.cat([inside[:, :n_a], inside[:, end_b:]], dim=1), inside[:, n_a:end_b]
+        # above the layer B and C columns are zeros already (:func:`_spread`); A was read whole: zero it there
+        in_g = None if inside is None else torch.cat([inside[:, :n_a], inside[:, end_b:]], dim=1)
         p_n = p_g = None
         if time_gate:
             p = _time_gate_prob(masks)  # (1, n) in run order A, B, C
             p_n, p_g = p[:, n_a:end_b], torch.cat([p[:, :n_a], p[:, end_b:]], dim=1)
         for stat, (dyn_g, dyn_n, time_g, time_n) in zip(stat_parts, dyn_parts, strict=True):
             dyn_g, dyn_n = _dynamic_features(dyn_g, time_g, p_g), _dynamic_features(dyn_n, time_n, p_n)
-            if inside is not None:
-                dyn_g, dyn_n = torch.where(in_g, dyn_g, 0.0), torch.where(in_n, dyn_n, 0.0)
+            if in_g is not None:
+                dyn_g = torch.where(in_g, dyn_g, 0.0)
             feats += [stat, torch.cat([gate_grad(dyn_g[:, :n_a], g_a), dyn_n, dyn_g[:, n_a:]], dim=1)]
         features, mask_values = torch.cat(feats + mask_feats, dim=0).t(), torch.cat(masks, dim=0).t()
         if inv is not None:
