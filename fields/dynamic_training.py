@@ -24,7 +24,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -213,6 +213,9 @@ class DynamicFitResult:
     #: the running share of background rays ending in the air (:func:`shortfall_stats`) at the end
     air_share: float | None = None
     air_prior_steps: int = 0
+    #: the options this run trained with: those asked for, except that a resumed fit keeps its checkpoint's
+    #: model options (:func:`options_the_checkpoint_overrides`). None: not recorded
+    config: DynamicFitConfig | None = None
 
 
 def split(dd: DynamicFlightData, every: int) -> tuple[list[int], list[int]]:
@@ -224,6 +227,31 @@ def split(dd: DynamicFlightData, every: int) -> tuple[list[int], list[int]]:
     test = sorted(order[k] for k in range(len(order)) if k % every == every - 1)
     train = sorted(order[k] for k in range(len(order)) if k % every != every - 1)
     return train, test
+
+
+#: the options that shape the model :func:`build_model` makes; a resumed fit keeps its checkpoint's model,
+#: so these take effect only in a fresh fit (:func:`options_the_checkpoint_overrides`). A different ``kind``
+#: is an error instead
+MODEL_OPTIONS = ("n_samples", "features", "hidden", "appearance_dim", "max_resolution", "cell_factor",
+                 "mask_init_background", "mask_encoding", "time_gate", "dynamic_height_m", "pose_knot_s",
+                 "pose_knot_coarse_s", "pose_per_frame", "pose_drift_on_sfm")
+
+
+def options_the_checkpoint_overrides(saved: dict, cfg: DynamicFitConfig) -> dict[str, tuple]:
+    """``{name: (saved value, asked value)}`` for each of :data:`MODEL_OPTIONS` whose value in the
+    checkpoint's ``fit_config`` (``saved``) differs from ``cfg``'s: the resumed model keeps the saved one.
+    Options a checkpoint predates are not listed (their saved value is unknown)."""
+    asked = asdict(cfg)
+    out = {}
+    for name in MODEL_OPTIONS:
+        if name not in saved:
+            continue
+        old, new = saved[name], asked[name]
+        if isinstance(old, list | tuple) and isinstance(new, list | tuple):
+            old, new = tuple(old), tuple(new)
+        if old != new:
+            out[name] = (old, new)
+    return out
 
 
 def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConfig, flight: Path | None):
@@ -405,6 +433,13 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
         model, ck = load_dynamic_checkpoint(ckpt, dev)
         if model.kind != cfg.kind:
             raise ValueError(f"{ckpt} holds a {model.kind} field, not {cfg.kind}; drop --resume to start over")
+        kept = options_the_checkpoint_overrides(ck.get("fit_config", {}), cfg)
+        if kept:
+            log.warning("resuming %s: the model keeps the checkpoint's shape, so these options apply only to a "
+                        "fresh fit (drop --resume to start over): %s", ckpt,
+                        "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in kept.items()))
+            # the run's record (checkpoint, fit.json) states the model it trained, not the options asked for
+            cfg = replace(cfg, **{k: old for k, (old, _) in kept.items()})
         optim = _optimizer(model, cfg)
         if ck.get("optim"):
             built = [{k: v for k, v in g.items() if k != "params"} for g in optim.param_groups]
@@ -556,7 +591,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
     model.eval()
     if ckpt:
         save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
-    return DynamicFitResult(model, step, train_s, curve, bounds, sizing, shortfall_ema, air_ema, prior_steps)
+    return DynamicFitResult(model, step, train_s, curve, bounds, sizing, shortfall_ema, air_ema, prior_steps, cfg)
 
 
 def gate_run_order(dynamic: torch.Tensor, lead: int) -> torch.Tensor:
@@ -650,7 +685,7 @@ def write_dynamic_fit_json(path: Path, result: DynamicFitResult, cfg: DynamicFit
                "train_s": round(result.train_s, 2), "params": n, "mb": round(n * 4 / 1e6, 2),
                "planes": result.model.field_config.planes.to_json(), "sizing": result.sizing,
                "bounds": result.bounds.to_json() if result.bounds else None, "heldout": heldout,
-               "kind_choice": kind_choice, "curve": result.curve, "config": asdict(cfg),
+               "kind_choice": kind_choice, "curve": result.curve, "config": asdict(result.config or cfg),
                "ground_shortfall": result.ground_shortfall, "air_share": result.air_share,
                "air_prior_steps": result.air_prior_steps,
                "pose_drift": result.model.pose_drift.summary() if result.model.pose_drift is not None else None}

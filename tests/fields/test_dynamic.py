@@ -8,6 +8,7 @@ import json
 import shutil
 import subprocess
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -232,6 +233,39 @@ def test_resume_continues_the_step_count(dynamic_flight, tmp_path):
     assert r.step == 5
     with pytest.raises(ValueError, match="holds a kplanes-ext"):
         fit_dynamic(dd, DynamicFitConfig(kind="kplanes", **TINY), out_dir=tmp_path, resume=True)
+
+
+def test_resume_keeps_the_checkpoint_model_and_says_which_options_it_overrides(dynamic_flight, tmp_path, caplog):
+    """A whole-box extended fit resumed under the default ground layer stays a whole-box fit, and the log
+    names the option that did not take effect; options that do not shape the model pass silently."""
+    dd = load_dynamic_flight(dynamic_flight)
+    first = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **TINY, dynamic_height_m=None), out_dir=tmp_path)
+    assert first.model.field_config.planes.dynamic_z_top == 1.0
+    caplog.set_level("WARNING", logger="fields.dynamic_training")
+    r = fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **{**TINY, "iters": 5}), out_dir=tmp_path, resume=True)
+    assert r.step == 5 and r.model.field_config.planes.dynamic_z_top == 1.0
+    warned = [m for m in caplog.messages if "apply only to a fresh fit" in m]
+    assert len(warned) == 1 and "dynamic_height_m: None -> 2.5" in warned[0] and "iters" not in warned[0]
+    # the run's record states the model it trained: the checkpoint's layer, with the options that do not
+    # shape the model as asked; so a second resume warns again
+    assert r.config.dynamic_height_m is None and r.config.iters == 5
+    saved = torch.load(tmp_path / "dynamic.pt", weights_only=False)["fit_config"]
+    assert saved["dynamic_height_m"] is None and saved["iters"] == 5
+    caplog.clear()
+    fit_dynamic(dd, DynamicFitConfig(kind="kplanes-ext", **{**TINY, "iters": 6}), out_dir=tmp_path, resume=True)
+    assert len([m for m in caplog.messages if "dynamic_height_m: None -> 2.5" in m]) == 1
+
+
+def test_options_the_checkpoint_overrides_compares_tuples_with_saved_lists():
+    """torch.save keeps tuples, but an older checkpoint or a JSON round trip may hold lists."""
+    from fields.dynamic_training import options_the_checkpoint_overrides
+
+    cfg = DynamicFitConfig()
+    saved = asdict(cfg) | {"pose_knot_coarse_s": list(cfg.pose_knot_coarse_s)}
+    assert options_the_checkpoint_overrides(saved, cfg) == {}
+    saved |= {"features": cfg.features * 2, "lr": 1.0}
+    assert options_the_checkpoint_overrides(saved, cfg) == {"features": (cfg.features * 2, cfg.features)}
+    assert options_the_checkpoint_overrides({}, cfg) == {}  # a checkpoint that predates fit_config
 
 
 def _plane_grads(model, gate_value, dd):
