@@ -98,7 +98,7 @@ def fit_dynamic_flight(flight: Path, out: Path, kind: str, dd=None, choice: dict
         result = fit_dynamic(dd, cfg, out_dir=out, flight=flight, resume=resume)
         _, test = split(dd, cfg.holdout_every)
         heldout = evaluate_dynamic(result.model, dd, test, out_dir=out / "heldout") if test else None
-    write_dynamic_fit_json(out / "fit.json", result, cfg, heldout, choice)
+    write_dynamic_fit_json(out / "fit.json", result, heldout, choice)
     n = result.model.param_count()
     return {"kind": kind, "steps": result.step, "train_s": round(result.train_s, 1), "params": n,
             "mb": round(n * 4 / 1e6, 2), "heldout_psnr": heldout["psnr"] if heldout else None,

@@ -214,7 +214,7 @@ class DynamicFitResult:
     air_share: float | None = None
     air_prior_steps: int = 0
     #: the options this run trained with: those asked for, except that a resumed fit keeps its checkpoint's
-    #: model options (:func:`options_the_checkpoint_overrides`). None: not recorded
+    #: model options (:func:`options_the_checkpoint_overrides`). None: not from :func:`fit_dynamic`
     config: DynamicFitConfig | None = None
 
 
@@ -678,14 +678,15 @@ def _pooled_psnr(mse_per_frame: list[float]) -> float | None:
     return float(-10 * np.log10(max(np.mean(mse_per_frame), 1e-10))) if mse_per_frame else None
 
 
-def write_dynamic_fit_json(path: Path, result: DynamicFitResult, cfg: DynamicFitConfig, heldout: dict | None,
+def write_dynamic_fit_json(path: Path, result: DynamicFitResult, heldout: dict | None,
                            kind_choice: dict | None = None) -> None:
     n = result.model.param_count()
     payload = {"kind": result.model.kind, "sampler": "stratified", "steps": result.step,
                "train_s": round(result.train_s, 2), "params": n, "mb": round(n * 4 / 1e6, 2),
                "planes": result.model.field_config.planes.to_json(), "sizing": result.sizing,
                "bounds": result.bounds.to_json() if result.bounds else None, "heldout": heldout,
-               "kind_choice": kind_choice, "curve": result.curve, "config": asdict(result.config or cfg),
+               "kind_choice": kind_choice, "curve": result.curve,
+               "config": asdict(result.config) if result.config else None,
                "ground_shortfall": result.ground_shortfall, "air_share": result.air_share,
                "air_prior_steps": result.air_prior_steps,
                "pose_drift": result.model.pose_drift.summary() if result.model.pose_drift is not None else None}
