@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from fields.data import FlightData, RayBank
+from fields.description_diff import description_differences
 from fields.evaluation import label_boxes, match_boxes, psnr, ssim
 from fields.field import FieldConfig
 from fields.footprint import footprint_map
@@ -155,6 +156,9 @@ class FitResult:
     sizing: Sizing | None = None
     #: steps of the mask-only phase (included in ``step``)
     mask_steps: int = 0
+    #: a resumed fit: ``{description path: (checkpoint's value, the options' value)}`` where the options
+    #: asked for a different model than the checkpoint holds (:func:`model_the_checkpoint_keeps`)
+    resume_kept: dict = field(default_factory=dict)
 
 
 def device() -> torch.device:
@@ -197,6 +201,18 @@ def build_model(data: FlightData, train_idx: list[int], cfg: FitConfig, flight: 
                                 f"footprint {fp.min() * 100:.1f} cm (median {np.median(fp) * 100:.1f}, max "
                                 f"{fp.max() * 100:.1f}); levels finer than the data there are damped")
     return model, bounds, sizing
+
+
+def model_the_checkpoint_keeps(saved: dict, data: FlightData, train_idx: list[int], cfg: FitConfig,
+                               flight: Path | None) -> dict[str, tuple]:
+    """Where a checkpoint's model description (``saved``) differs from that of the model ``cfg`` would
+    build for this flight: ``{path: (saved, fresh)}`` (:func:`fields.description_diff.description_differences`).
+
+    A resumed fit keeps the checkpoint's model, so these are the options' effects that do not apply. The
+    model is built on the CPU under a forked random state, so the resumed run draws what it would have."""
+    with torch.random.fork_rng(devices=[]):
+        fresh, _, _ = build_model(data, train_idx, cfg, flight)
+    return description_differences(saved, fresh.describe())
 
 
 def _mask_grid(bounds: SceneBounds, cfg: FitConfig, geo_mb: float, sizing: Sizing) -> tuple[list, int]:
@@ -291,8 +307,14 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         raise ValueError("no training frames left after holding out every "
                          f"{cfg.holdout_every}th frame of {data.n}")
     ckpt = out_dir / CHECKPOINT if out_dir else None
+    kept: dict[str, tuple] = {}
     if resume and ckpt and ckpt.is_file():
         model, ck = load_checkpoint(ckpt, dev)
+        kept = model_the_checkpoint_keeps(ck["model"], data, train_idx, cfg, flight)
+        if kept:
+            log.warning("resuming %s: the model keeps the checkpoint's shape, so options that would change it "
+                        "apply only to a fresh fit (drop --resume to start over); checkpoint -> these options: %s",
+                        ckpt, "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in kept.items()))
         model.train()
         optim = _optimizer(model, cfg)
         if ck.get("optim"):
@@ -313,7 +335,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         step, train_s, curve = 0, 0.0, []
     model.train()
     log.info("model: %s encoding, %d parameters (%.1f MB), sampler %s", model.field_config.encoding,
-             model.param_count(), model.param_count() * 4 / 1e6, cfg.sampler)
+             model.param_count(), model.param_count() * 4 / 1e6, model.sampler_config.kind)
 
     bank = RayBank(data.camera, data.cam_from_world, dev)
     images = data.images.to(dev).view(data.n, -1, 3)
@@ -471,7 +493,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     model.eval()
     if ckpt:
         save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
-    return FitResult(model, step, train_s, curve, bounds, sizing, mask_steps)
+    return FitResult(model, step, train_s, curve, bounds, sizing, mask_steps, kept)
 
 
 class _MaskCache:
@@ -606,11 +628,15 @@ def evaluate_heldout(model: StaticModel, data: FlightData, indices: list[int],
 
 def write_fit_json(path: Path, result: FitResult, cfg: FitConfig, heldout: dict | None) -> None:
     n = result.model.param_count()
-    payload = {"kind": "static", "encoding": cfg.encoding, "sampler": cfg.sampler, "steps": result.step,
+    model = result.model
+    payload = {"kind": "static", "encoding": model.field_config.encoding, "sampler": model.sampler_config.kind,
+               "steps": result.step,
                "train_s": round(result.train_s, 2), "params": n, "mb": round(n * 4 / 1e6, 2),
                "sizing": asdict(result.sizing) if result.sizing else None,
                "bounds": result.bounds.to_json() if result.bounds else None,
                "heldout": heldout, "curve": result.curve, "config": asdict(cfg)}
+    if result.resume_kept:  # the options asked for another model than the resumed checkpoint holds
+        payload["resume_kept_model"] = {k: [old, new] for k, (old, new) in result.resume_kept.items()}
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1, default=float) + "\n")
     os.replace(tmp, path)

@@ -113,6 +113,28 @@ def test_checkpoint_roundtrip_renders_identically_and_resumes(tmp_path, tiny_fli
     assert ck["step"] == 30
     res2 = fit(d, FitConfig(**{**cfg.__dict__, "iters": 40}), out_dir=tmp_path, resume=True)
     assert res2.step == 40
+    assert res2.resume_kept == {}  # the same options build the same model: nothing to warn about
+
+
+def test_resume_keeps_the_checkpoint_model_and_says_what_the_options_would_change(tmp_path, tiny_flight, caplog):
+    """A fit resumed with options that build another model (encoding, size budget) keeps the checkpoint's,
+    warns with what differs, and ``fit.json`` names the model it trained, not the one asked for."""
+    from fields.training import write_fit_json
+
+    d = load_flight(tiny_flight)
+    cfg = FitConfig(**{**TINY, "iters": 5, "sampler": "stratified"})
+    first = fit(d, cfg, out_dir=tmp_path)
+    asked = FitConfig(**{**cfg.__dict__, "iters": 8, "encoding": "planes", "budget_mb": 0.5})
+    with caplog.at_level("WARNING", logger="fields.training"):
+        res = fit(d, asked, out_dir=tmp_path, resume=True)
+    assert res.step == 8 and res.model.field_config.encoding == "hash"
+    assert res.model.param_count() == first.model.param_count()
+    assert res.resume_kept["field.encoding"] == ("hash", "planes")
+    warned = [r.getMessage() for r in caplog.records if "keeps the checkpoint's shape" in r.getMessage()]
+    assert len(warned) == 1 and "field.encoding: 'hash' -> 'planes'" in warned[0]
+    write_fit_json(tmp_path / "fit.json", res, asked, None)
+    info = json.loads((tmp_path / "fit.json").read_text())
+    assert info["encoding"] == "hash" and info["resume_kept_model"]["field.encoding"] == ["hash", "planes"]
 
 
 def test_metrics_on_known_images():
