@@ -231,7 +231,8 @@ def split(dd: DynamicFlightData, every: int) -> tuple[list[int], list[int]]:
 
 #: the options that shape the model :func:`build_model` makes; a resumed fit keeps its checkpoint's model,
 #: so these take effect only in a fresh fit (:func:`options_the_checkpoint_overrides`). A different ``kind``
-#: is an error instead
+#: is an error instead. Kept by hand: a test changes every option in turn and checks which ones change the
+#: built model's description
 MODEL_OPTIONS = ("n_samples", "features", "hidden", "appearance_dim", "max_resolution", "cell_factor",
                  "mask_init_background", "mask_encoding", "time_gate", "dynamic_height_m", "pose_knot_s",
                  "pose_knot_coarse_s", "pose_per_frame", "pose_drift_on_sfm")

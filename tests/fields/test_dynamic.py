@@ -256,6 +256,52 @@ def test_resume_keeps_the_checkpoint_model_and_says_which_options_it_overrides(d
     assert len([m for m in caplog.messages if "dynamic_height_m: None -> 2.5" in m]) == 1
 
 
+#: a changed value for each option whose default is None, a string or a tuple (numbers and flags change
+#: generically), and for ``cell_factor``, which must coarsen the cells past TINY's resolution cap to show
+_OTHER_VALUE = {"budget_s": 10.0, "threads": 1, "mask_init_background": None, "mask_encoding": "geometry",
+                "air_prior": True, "time_gate": True, "dynamic_height_m": None, "pose_knot_s": 2.0,
+                "pose_knot_coarse_s": (8.0,), "cell_factor": 20.0}
+
+
+def _changed(name: str, value):
+    if name in _OTHER_VALUE:
+        return _OTHER_VALUE[name]
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, int):
+        return value + 1
+    if isinstance(value, float):
+        return value * 2 + 0.125
+    raise AssertionError(f"no changed value for option {name}={value!r}: add one to _OTHER_VALUE")
+
+
+def test_model_options_lists_every_option_that_shapes_the_model(dynamic_flight):
+    """``MODEL_OPTIONS`` is kept by hand beside ``build_model``; a resume warns only about the options in it.
+    Changing any other option one at a time leaves the built model's description as it was, and changing
+    a listed option other than the SfM-only one changes it (the flight has telemetry poses)."""
+    from dataclasses import fields as dataclass_fields
+    from dataclasses import replace
+
+    from fields.description_diff import description_differences
+    from fields.dynamic_training import MODEL_OPTIONS
+
+    dd = load_dynamic_flight(dynamic_flight)
+    train, _ = split(dd, 2)
+    base = DynamicFitConfig(kind="kplanes-ext", **TINY)
+    described = build_model(dd, train, base, dynamic_flight)[0].describe()
+    unlisted_but_shaping, listed_but_inert = [], []
+    for f in dataclass_fields(DynamicFitConfig):
+        if f.name == "kind":
+            continue
+        other = replace(base, **{f.name: _changed(f.name, getattr(base, f.name))})
+        diff = description_differences(described, build_model(dd, train, other, dynamic_flight)[0].describe())
+        if diff and f.name not in MODEL_OPTIONS:
+            unlisted_but_shaping.append((f.name, sorted(diff)))
+        if not diff and f.name in MODEL_OPTIONS and f.name != "pose_drift_on_sfm":
+            listed_but_inert.append(f.name)
+    assert unlisted_but_shaping == [] and listed_but_inert == []
+
+
 def test_options_the_checkpoint_overrides_compares_tuples_with_saved_lists():
     """torch.save keeps tuples, but an older checkpoint or a JSON round trip may hold lists."""
     from fields.dynamic_training import options_the_checkpoint_overrides
