@@ -455,7 +455,8 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         else:
             loss.backward()
             optim.step()
-        if cfg.sampler == "occupancy" and step + 1 >= cfg.occupancy_warmup and (step + 1) % cfg.occupancy_every == 0:
+        occupancy = model.sampler_config.kind == "occupancy"  # the model's: a resume may have asked for another
+        if occupancy and step + 1 >= cfg.occupancy_warmup and (step + 1) % cfg.occupancy_every == 0:
             model.sampler.update(model.field.density, model.field.lo, model.field.hi, generator=gen)
         after_step(float(loss_rgb.detach()), lr, "rgb")
 
@@ -627,8 +628,8 @@ def evaluate_heldout(model: StaticModel, data: FlightData, indices: list[int],
 
 
 def write_fit_json(path: Path, result: FitResult, cfg: FitConfig, heldout: dict | None) -> None:
-    n = result.model.param_count()
     model = result.model
+    n = model.param_count()
     payload = {"kind": "static", "encoding": model.field_config.encoding, "sampler": model.sampler_config.kind,
                "steps": result.step,
                "train_s": round(result.train_s, 2), "params": n, "mb": round(n * 4 / 1e6, 2),

@@ -117,14 +117,16 @@ def test_checkpoint_roundtrip_renders_identically_and_resumes(tmp_path, tiny_fli
 
 
 def test_resume_keeps_the_checkpoint_model_and_says_what_the_options_would_change(tmp_path, tiny_flight, caplog):
-    """A fit resumed with options that build another model (encoding, size budget) keeps the checkpoint's,
-    warns with what differs, and ``fit.json`` names the model it trained, not the one asked for."""
+    """A fit resumed with options that build another model (encoding, sampler, size budget) keeps the
+    checkpoint's, trains it as what it is (no occupancy updates on a stratified sampler), warns with what
+    differs, and ``fit.json`` names the model it trained, not the one asked for."""
     from fields.training import write_fit_json
 
     d = load_flight(tiny_flight)
     cfg = FitConfig(**{**TINY, "iters": 5, "sampler": "stratified"})
     first = fit(d, cfg, out_dir=tmp_path)
-    asked = FitConfig(**{**cfg.__dict__, "iters": 8, "encoding": "planes", "budget_mb": 0.5})
+    asked = FitConfig(**{**cfg.__dict__, "iters": 8, "encoding": "planes", "budget_mb": 0.5, "sampler": "occupancy",
+                         "occupancy_warmup": 1, "occupancy_every": 1})
     with caplog.at_level("WARNING", logger="fields.training"):
         res = fit(d, asked, out_dir=tmp_path, resume=True)
     assert res.step == 8 and res.model.field_config.encoding == "hash"
@@ -135,6 +137,7 @@ def test_resume_keeps_the_checkpoint_model_and_says_what_the_options_would_chang
     write_fit_json(tmp_path / "fit.json", res, asked, None)
     info = json.loads((tmp_path / "fit.json").read_text())
     assert info["encoding"] == "hash" and info["resume_kept_model"]["field.encoding"] == ["hash", "planes"]
+    assert info["sampler"] == "stratified" and info["resume_kept_model"]["sampler.kind"] == ["stratified", "occupancy"]
 
 
 def test_metrics_on_known_images():
