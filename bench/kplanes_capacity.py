@@ -3,8 +3,8 @@
 Question (bench/RESULTS.md, Table III sessions 29-30): both kinds fit the people of the dynamic bench flights
 poorly, even on their training frames. Is that the planes (every feature channel is a product of an xt and
 a yt plane, so at one instant each channel is a separable x-times-y pattern) or the rest of the fit (poses,
-rendering, sampling)? Here the stock encoding (:class:`fields.kplanes.KPlanesEncoding`, 16 features,
-64/128/256 cells over 40 m, T = 40) and a 64-wide MLP fit colour and occupancy of ``N`` people directly:
+rendering, sampling)? Here the stock encoding (:class:`fields.kplanes.KPlanesEncoding`, 16 features by default,
+64/128/256 cells over 40 m, T = 40) and a 64-wide MLP (by default) fit colour and occupancy of ``N`` people directly:
 discs of radius 0.3 m with their own colour, walking straight at 1.3 m/s, on a grey ground, at z fixed,
 at 40 instants 0.4 s apart on the time grid (the 80-frame flight's training frames). Each batch is 4096
 points: a quarter within 1 m of a person (``--near-div`` divides that share: one person given the samples
@@ -14,7 +14,8 @@ fit's (TV 2e-4, time smoothness 1e-3, time L1 1e-4; lr 1e-2 decaying to 1e-3).
 Reported per N: colour PSNR on a 5 cm grid over 1.2 m squares around each person at every fourth
 training instant, and the IoU of occupancy > 0.5 there.
 
-    python bench/kplanes_capacity.py --people 1,4,16 [--steps 1500] [--near-div 4] [--one-at-a-time] --json OUT
+    python bench/kplanes_capacity.py --people 1,4,16 [--steps 1500] [--near-div 4] [--one-at-a-time]
+        [--features 16] [--hidden 64] [--reg-scale 1] --json OUT
 """
 
 from __future__ import annotations
@@ -69,14 +70,16 @@ def truth(xy: torch.Tensor, instant: torch.Tensor, people: tuple, one_at_a_time:
     return torch.cat([rgb, occ[:, None].float()], 1)
 
 
-def fit_and_score(n: int, steps: int, near_div: int, one_at_a_time: bool, seed: int) -> dict:
+def fit_and_score(n: int, steps: int, near_div: int, one_at_a_time: bool, seed: int, features: int = 16,
+                  hidden: int = 64, reg_scale: float = 1.0) -> dict:
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     people = walkers(n, g)
     p0, v, _ = people
     enc = KPlanesEncoding(KPlanesConfig(base_resolution=(64, 64, 16), multipliers=(1, 2, 4),
-                                        time_resolution=INSTANTS, features=16))
-    mlp = nn.Sequential(nn.Linear(enc.out_dim, 64), nn.ReLU(), nn.Linear(64, 64), nn.ReLU(), nn.Linear(64, 4))
+                                        time_resolution=INSTANTS, features=features))
+    mlp = nn.Sequential(nn.Linear(enc.out_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                        nn.Linear(hidden, 4))
     opt = torch.optim.Adam([*enc.parameters(), *mlp.parameters()], lr=1e-2, eps=1e-15)
 
     def predict(xy: torch.Tensor, instant: torch.Tensor) -> torch.Tensor:
@@ -94,7 +97,8 @@ def fit_and_score(n: int, steps: int, near_div: int, one_at_a_time: bool, seed: 
         jitter = (torch.rand(near, 2, generator=g) - 0.5) * 2.0  # within 1 m of the person, per axis
         xy[:near] = p0[who] + v[who] * (instant[:near].float() * DT_S)[:, None] + jitter
         loss = ((predict(xy, instant) - truth(xy, instant, people, one_at_a_time)) ** 2).mean()
-        loss = loss + 2e-4 * enc.total_variation() + 1e-3 * enc.time_smoothness() + 1e-4 * enc.time_l1()
+        reg = 2e-4 * enc.total_variation() + 1e-3 * enc.time_smoothness() + 1e-4 * enc.time_l1()
+        loss = loss + reg_scale * reg
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -116,6 +120,7 @@ def fit_and_score(n: int, steps: int, near_div: int, one_at_a_time: bool, seed: 
                 a, b = out[:, 3] > 0.5, want[:, 3] > 0.5
                 inter, union = inter + int((a & b).sum()), union + int((a | b).sum())
     return {"people": n, "steps": steps, "near_div": near_div, "one_at_a_time": one_at_a_time, "seed": seed,
+            "features": features, "hidden": hidden, "reg_scale": reg_scale,
             "train_s": round(train_s, 1), "colour_psnr_db": round(-10 * math.log10(sq_err / count), 2),
             "occupancy_iou": round(inter / max(union, 1), 3)}
 
@@ -127,13 +132,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--near-div", type=int, default=1, help="divide the near-people share of a batch by this")
     ap.add_argument("--one-at-a-time", action="store_true", help="each person walks alone, in turn")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--features", type=int, default=16, help="features per plane (the dynamic fit's default)")
+    ap.add_argument("--hidden", type=int, default=64, help="width of the decoder MLP")
+    ap.add_argument("--reg-scale", type=float, default=1.0, help="multiply the three regularisers by this")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     rows = []
     for n in (int(a) for a in args.people.split(",")):
-        rows.append(fit_and_score(n, args.steps, args.near_div, args.one_at_a_time, args.seed))
+        rows.append(fit_and_score(n, args.steps, args.near_div, args.one_at_a_time, args.seed, args.features,
+                                  args.hidden, args.reg_scale))
         print(rows[-1], flush=True)
     write_json("kplanes_capacity", {"threads": args.threads, "rows": rows}, args.json)
     return 0
