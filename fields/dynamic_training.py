@@ -31,6 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from fields.description_diff import description_differences
 from fields.dynamic_data import DynamicFlightData
 from fields.dynamic_model import DynamicModel, make_field_config, plane_sizing
 from fields.evaluation import label_boxes, match_boxes, psnr, ssim
@@ -241,18 +242,13 @@ MODEL_OPTIONS = ("n_samples", "features", "hidden", "appearance_dim", "max_resol
 def options_the_checkpoint_overrides(saved: dict, cfg: DynamicFitConfig) -> dict[str, tuple]:
     """``{name: (saved value, asked value)}`` for each of :data:`MODEL_OPTIONS` whose value in the
     checkpoint's ``fit_config`` (``saved``) differs from ``cfg``'s: the resumed model keeps the saved one.
-    Options a checkpoint predates are not listed (their saved value is unknown)."""
+    Options a checkpoint predates are not listed (their saved value is unknown). Compared as model
+    descriptions are (:func:`fields.description_diff.description_differences`: a saved list equals the
+    same tuple); a saved list comes back as the tuple the option holds."""
     asked = asdict(cfg)
-    out = {}
-    for name in MODEL_OPTIONS:
-        if name not in saved:
-            continue
-        old, new = saved[name], asked[name]
-        if isinstance(old, list | tuple) and isinstance(new, list | tuple):
-            old, new = tuple(old), tuple(new)
-        if old != new:
-            out[name] = (old, new)
-    return out
+    known = [name for name in MODEL_OPTIONS if name in saved]
+    diff = description_differences({n: saved[n] for n in known}, {n: asked[n] for n in known})
+    return {name: (tuple(old) if isinstance(old, list) else old, new) for name, (old, new) in diff.items()}
 
 
 def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConfig, flight: Path | None):
