@@ -34,6 +34,7 @@ import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
 from bench._common import write_json  # noqa: E402
+from fields.encodings import HashGrid, HashGridConfig, geometric_resolutions  # noqa: E402
 from fields.kplanes import KPlanesConfig, KPlanesEncoding  # noqa: E402
 
 RADIUS_M = 0.3
@@ -41,13 +42,21 @@ SIDE_M = 40.0
 INSTANTS = 40
 DT_S = 0.4
 GROUND_RGB = 0.45
+SPEED_M_S = 1.3
+#: path midpoints within this many metres of the centre per axis: 7 + 10.1 (half a walk) + 0.3 < 20
+MID_M = 7.0
 
 
 def walkers(n: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Start positions (n, 2) m within 14 m of the centre, velocities (n, 2) m/s, colours (n, 3)."""
-    p0 = (torch.rand(n, 2, generator=g) - 0.5) * 28.0
+    """Start positions (n, 2) m, velocities (n, 2) m/s, colours (n, 3).
+
+    Each path's midpoint lies within 7 m of the centre (per axis), so the whole 20 m walk stays inside the
+    40 m square: a point outside it would be clamped to the encoding's border and could not be fitted.
+    """
+    mid = (torch.rand(n, 2, generator=g) - 0.5) * 2 * MID_M
     ang = torch.rand(n, generator=g) * 2 * math.pi
-    v = 1.3 * torch.stack([ang.cos(), ang.sin()], 1)
+    v = SPEED_M_S * torch.stack([ang.cos(), ang.sin()], 1)
+    p0 = mid - v * (INSTANTS - 1) * DT_S / 2
     return p0, v, torch.rand(n, 3, generator=g) * 0.8 + 0.1
 
 
@@ -71,20 +80,35 @@ def truth(xy: torch.Tensor, instant: torch.Tensor, people: tuple, one_at_a_time:
 
 
 def fit_and_score(n: int, steps: int, near_div: int, one_at_a_time: bool, seed: int, features: int = 16,
-                  hidden: int = 64, reg_scale: float = 1.0) -> dict:
+                  hidden: int = 64, reg_scale: float = 1.0, xyt_hash_log2: int = 0,
+                  flight_times: bool = False, same_colour: bool = False) -> dict:
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     people = walkers(n, g)
+    if same_colour:  # every walker wears the first one's colour: is telling them apart the hard part?
+        people = (people[0], people[1], people[2][:1].expand(n, 3).clone())
     p0, v, _ = people
     enc = KPlanesEncoding(KPlanesConfig(base_resolution=(64, 64, 16), multipliers=(1, 2, 4),
                                         time_resolution=INSTANTS, features=features))
-    mlp = nn.Sequential(nn.Linear(enc.out_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+    # optional: a hash grid over (x, y, t) beside the planes, its features concatenated to theirs
+    xyt = None
+    if xyt_hash_log2:
+        levels = geometric_resolutions((16, 16, 8), (256, 256, INSTANTS - 1), 8)
+        xyt = HashGrid(HashGridConfig(resolutions=levels, features=2, log2_table=xyt_hash_log2))
+    extra = xyt.out_dim if xyt is not None else 0
+    mlp = nn.Sequential(nn.Linear(enc.out_dim + extra, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                         nn.Linear(hidden, 4))
-    opt = torch.optim.Adam([*enc.parameters(), *mlp.parameters()], lr=1e-2, eps=1e-15)
+    extra_params = list(xyt.parameters()) if xyt is not None else []
+    opt = torch.optim.Adam([*enc.parameters(), *mlp.parameters(), *extra_params], lr=1e-2, eps=1e-15)
 
     def predict(xy: torch.Tensor, instant: torch.Tensor) -> torch.Tensor:
         x01 = torch.cat([xy / SIDE_M + 0.5, torch.full((len(xy), 1), 0.05)], 1)
-        return mlp(enc(x01, instant.float() / (INSTANTS - 1))["features"])
+        # on the grid: instant i at row i; as the flight: training frame 2i of 2 * INSTANTS at t01 = 2i / (2N - 1)
+        t01 = instant.float() * (2.0 / (2 * INSTANTS - 1) if flight_times else 1.0 / (INSTANTS - 1))
+        feats = enc(x01, t01)["features"]
+        if xyt is not None:
+            feats = torch.cat([feats, xyt(torch.cat([x01[:, :2], t01[:, None]], 1))], 1)
+        return mlp(feats)
 
     batch, near = 4096, 4096 // 4 // near_div
     t0 = time.perf_counter()
@@ -120,7 +144,8 @@ def fit_and_score(n: int, steps: int, near_div: int, one_at_a_time: bool, seed: 
                 a, b = out[:, 3] > 0.5, want[:, 3] > 0.5
                 inter, union = inter + int((a & b).sum()), union + int((a | b).sum())
     return {"people": n, "steps": steps, "near_div": near_div, "one_at_a_time": one_at_a_time, "seed": seed,
-            "features": features, "hidden": hidden, "reg_scale": reg_scale,
+            "features": features, "hidden": hidden, "reg_scale": reg_scale, "xyt_hash_log2": xyt_hash_log2,
+            "flight_times": flight_times, "same_colour": same_colour,
             "train_s": round(train_s, 1), "colour_psnr_db": round(-10 * math.log10(sq_err / count), 2),
             "occupancy_iou": round(inter / max(union, 1), 3)}
 
@@ -135,6 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--features", type=int, default=16, help="features per plane (the dynamic fit's default)")
     ap.add_argument("--hidden", type=int, default=64, help="width of the decoder MLP")
     ap.add_argument("--reg-scale", type=float, default=1.0, help="multiply the three regularisers by this")
+    ap.add_argument("--xyt-hash", type=int, default=0, metavar="LOG2",
+                    help="add a hash grid over (x, y, t) with 2**LOG2 entries per level (0: planes only)")
+    ap.add_argument("--flight-times", action="store_true",
+                    help="time the instants as the dynamic fit does (training frames of twice as many, "
+                         "normalised over all): they drift off the time grid's rows by up to half a row")
+    ap.add_argument("--same-colour", action="store_true", help="every walker the same colour")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
@@ -142,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for n in (int(a) for a in args.people.split(",")):
         rows.append(fit_and_score(n, args.steps, args.near_div, args.one_at_a_time, args.seed, args.features,
-                                  args.hidden, args.reg_scale))
+                                  args.hidden, args.reg_scale, args.xyt_hash, args.flight_times,
+                                  args.same_colour))
         print(rows[-1], flush=True)
     write_json("kplanes_capacity", {"threads": args.threads, "rows": rows}, args.json)
     return 0
