@@ -35,4 +35,13 @@ def test_a_short_fit_scores_finite_numbers_with_every_option():
     row = kc.fit_and_score(2, steps=3, near_div=2, one_at_a_time=True, seed=1, features=4, hidden=8,
                            xyt_hash_log2=10, flight_times=True, same_colour=True)
     assert math.isfinite(row["colour_psnr_db"]) and 0.0 <= row["occupancy_iou"] <= 1.0
+    assert math.isfinite(row["between_colour_psnr_db"]) and 0.0 <= row["between_occupancy_iou"] <= 1.0
     assert row["xyt_hash_log2"] == 10 and row["same_colour"] and row["flight_times"]
+
+
+def test_truth_between_instants_puts_the_walker_halfway():
+    people = kc.walkers(1, torch.Generator().manual_seed(3))
+    p0, v, _ = people
+    halfway = p0[0] + v[0] * 0.5 * kc.DT_S
+    out = kc.truth(halfway[None], torch.tensor([0.5]), people, one_at_a_time=True)
+    assert float(out[0, 3]) == 1.0
