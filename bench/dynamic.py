@@ -77,10 +77,10 @@ def setup_torch(threads: int | None) -> None:
 
 
 def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: float = 0.05,
-            jitter_deg: float = 0.15, drift_scale: float = 1.0) -> None:
+            jitter_deg: float = 0.15, drift_scale: float = 1.0, dt_s: float = 0.2) -> None:
     """Render the flight once (cached under bench/out); ``jitter_*``: white per-frame pose noise;
     ``drift_scale`` scales the GNSS/IMU Gauss–Markov drift (0: poses consistent up to the jitter, as
-    after SfM)."""
+    after SfM); ``dt_s``: scene seconds between frames (the pass covers the same ground in ``frames * dt_s``)."""
     if (flight / "derived" / "poses.json").is_file():
         return
     from fields.dynamic_simscene import LineSpec, PoseNoise, write_line_flight
@@ -94,7 +94,7 @@ def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: floa
                       gps_vertical_sigma_m=base.gps_vertical_sigma_m * drift_scale,
                       attitude_sigma_deg=base.attitude_sigma_deg * drift_scale,
                       seed=seed + 1, jitter_m=jitter_m, jitter_deg=jitter_deg)
-    write_line_flight(flight, world, camera, LineSpec(frames=frames, seed=seed), noise, supersample=2)
+    write_line_flight(flight, world, camera, LineSpec(frames=frames, seed=seed, dt_s=dt_s), noise, supersample=2)
 
 
 def refine_with_sfm(flight: Path) -> Path:
@@ -199,6 +199,9 @@ def main() -> None:
     ap.add_argument("--jitter-deg", type=float, default=0.15, help="white per-frame attitude noise, deg")
     ap.add_argument("--drift-scale", type=float, default=1.0,
                     help="scale of the GNSS/IMU drift in the injected pose noise (0: none, SfM-like poses)")
+    ap.add_argument("--dt-s", type=float, default=0.2,
+                    help="scene seconds between frames (0.2: people walk ~0.5 m between training frames; "
+                         "the paper's 30 fps clip: 1/30)")
     ap.add_argument("--flight", type=Path, default=None, help="flight folder (default bench/out/dynamic_...)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--sfm", action="store_true", help="refine the noisy poses with SfM first (cached)")
@@ -235,10 +238,11 @@ def main() -> None:
     jitter = (args.jitter_m, args.jitter_deg)
     tag = "" if jitter == (0.05, 0.15) else f"_jit{args.jitter_m:g}m{args.jitter_deg:g}deg"
     tag += "" if args.drift_scale == 1.0 else f"_drift{args.drift_scale:g}"
+    tag += "" if args.dt_s == 0.2 else f"_dt{args.dt_s:g}s"
     flight = args.flight or flight_dir(args.width, args.frames, tag)
     t0 = time.perf_counter()
     prepare(flight, args.frames, args.width, jitter_m=args.jitter_m, jitter_deg=args.jitter_deg,
-            drift_scale=args.drift_scale)
+            drift_scale=args.drift_scale, dt_s=args.dt_s)
     if args.sfm:
         flight = refine_with_sfm(flight)
         tag += "_sfm"
@@ -316,7 +320,7 @@ def main() -> None:
     payload = {"flight": str(flight), "frames": dd.n, "train_frames": len(train_idx), "val_frames": len(val_idx),
                "width": dd.data.camera.width, "height": dd.data.camera.height, "budget_s": args.budget_s,
                "jitter_m": args.jitter_m, "jitter_deg": args.jitter_deg, "drift_scale": args.drift_scale,
-               "sfm": args.sfm, "loaded_fits": str(args.load_fits) if args.load_fits else None,
+               "dt_s": args.dt_s, "sfm": args.sfm, "loaded_fits": str(args.load_fits) if args.load_fits else None,
                "load_start": load_start, "load_end": load_avg(), "results": results,
                "threads": torch.get_num_threads(), "overrides": overrides}
     if "kplanes" in results:
