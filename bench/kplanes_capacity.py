@@ -9,7 +9,8 @@ discs of radius 0.3 m with their own colour, walking straight at 1.3 m/s, on a g
 at 40 instants 0.4 s apart on the time grid (the 80-frame flight's training frames). Each batch is 4096
 points: a quarter within 1 m of a person (``--near-div`` divides that share: one person given the samples
 one of N would get), the rest uniform. The regularisers and the learning-rate schedule are the dynamic
-fit's (TV 2e-4, time smoothness 1e-3, time L1 1e-4; lr 1e-2 decaying to 1e-3).
+fit's defaults (:class:`fields.dynamic_training.DynamicFitConfig`: TV 2e-4, time smoothness 1e-3, time L1 1e-4;
+lr 1e-2 decaying to 1e-3); Adam's betas are torch's defaults, not the fit's (0.9, 0.99).
 
 Reported per N: colour PSNR on a 5 cm grid over 1.2 m squares around each person at every fourth
 training instant, and the IoU of occupancy > 0.5 there; the same halfway to the next instant
@@ -36,6 +37,7 @@ import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
 from bench._common import write_json  # noqa: E402
+from fields.dynamic_training import DynamicFitConfig, regularisers  # noqa: E402
 from fields.encodings import HashGrid, HashGridConfig, geometric_resolutions  # noqa: E402
 from fields.kplanes import KPlanesConfig, KPlanesEncoding  # noqa: E402
 
@@ -44,6 +46,8 @@ SIDE_M = 40.0
 INSTANTS = 40
 DT_S = 0.4
 GROUND_RGB = 0.45
+#: the dynamic fit's defaults: learning-rate schedule and regulariser weights come from here
+FIT = DynamicFitConfig()
 SPEED_M_S = 1.3
 #: path midpoints within this many metres of the centre per axis: 7 + 10.1 (half a walk) + 0.3 < 20
 MID_M = 7.0
@@ -103,7 +107,7 @@ def fit_and_score(n: int, steps: int, near_div: int, one_at_a_time: bool, seed: 
     mlp = nn.Sequential(nn.Linear(enc.out_dim + extra, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                         nn.Linear(hidden, 4))
     extra_params = list(xyt.parameters()) if xyt is not None else []
-    opt = torch.optim.Adam([*enc.parameters(), *mlp.parameters(), *extra_params], lr=1e-2, eps=1e-15)
+    opt = torch.optim.Adam([*enc.parameters(), *mlp.parameters(), *extra_params], lr=FIT.lr, eps=1e-15)
 
     def predict(xy: torch.Tensor, instant: torch.Tensor) -> torch.Tensor:
         x01 = torch.cat([xy / SIDE_M + 0.5, torch.full((len(xy), 1), 0.05)], 1)
@@ -118,15 +122,14 @@ def fit_and_score(n: int, steps: int, near_div: int, one_at_a_time: bool, seed: 
     t0 = time.perf_counter()
     for step in range(steps):
         for group in opt.param_groups:
-            group["lr"] = 1e-2 * 0.1 ** (step / steps)
+            group["lr"] = FIT.lr * FIT.lr_final ** (step / steps)
         instant = torch.randint(INSTANTS, (batch,), generator=g)
         xy = (torch.rand(batch, 2, generator=g) - 0.5) * SIDE_M
         who = instant[:near] * n // INSTANTS if one_at_a_time else torch.randint(n, (near,), generator=g)
         jitter = (torch.rand(near, 2, generator=g) - 0.5) * 2.0  # within 1 m of the person, per axis
         xy[:near] = p0[who] + v[who] * (instant[:near].float() * DT_S)[:, None] + jitter
         loss = ((predict(xy, instant) - truth(xy, instant, people, one_at_a_time)) ** 2).mean()
-        reg = 2e-4 * enc.total_variation() + 1e-3 * enc.time_smoothness() + 1e-4 * enc.time_l1()
-        loss = loss + reg_scale * reg
+        loss = loss + reg_scale * regularisers(enc, FIT)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

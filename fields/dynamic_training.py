@@ -410,8 +410,8 @@ def running_average(previous: float | None, value: float) -> float:
     return value if previous is None else 0.95 * previous + 0.05 * value
 
 
-def regularisers(model: DynamicModel, cfg: DynamicFitConfig) -> torch.Tensor:
-    enc = model.field.encoding
+def regularisers(enc, cfg: DynamicFitConfig) -> torch.Tensor:
+    """The K-Planes regularisers of encoding ``enc`` (:class:`fields.kplanes.KPlanesEncoding`) weighted by ``cfg``."""
     return (cfg.lambda_tv * enc.total_variation() + cfg.lambda_time_smooth * enc.time_smoothness()
             + cfg.lambda_time_l1 * enc.time_l1())
 
@@ -533,7 +533,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
                                 with_features=ext and cfg.lambda_cos > 0, feature_points=cfg.cos_points, generator=gen,
                                 jitter_rows=order)
         loss_rgb = torch.mean(((res["rgb"] - target) ** 2).mean(-1) * mask_w)
-        loss = loss_rgb + regularisers(model, cfg)
+        loss = loss_rgb + regularisers(model.field.encoding, cfg)
         if model.pose_drift is not None and cfg.lambda_pose > 0:
             loss = loss + cfg.lambda_pose * model.pose_drift.penalty()
         if cfg.lambda_dist > 0:

@@ -414,6 +414,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
             save_checkpoint(ckpt, model, optim, step, train_s, cfg, _extra(bounds, sizing, curve, gen))
             t_mark = time.perf_counter()
 
+    occupancy = model.sampler_config.kind == "occupancy"  # the model's: a resume may have asked for another
     while step < main_iters and (main_budget is None or train_s < main_budget):
         lr = cfg.lr * cfg.lr_final ** progress()
         for g in optim.param_groups:
@@ -455,7 +456,6 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         else:
             loss.backward()
             optim.step()
-        occupancy = model.sampler_config.kind == "occupancy"  # the model's: a resume may have asked for another
         if occupancy and step + 1 >= cfg.occupancy_warmup and (step + 1) % cfg.occupancy_every == 0:
             model.sampler.update(model.field.density, model.field.lo, model.field.hi, generator=gen)
         after_step(float(loss_rgb.detach()), lr, "rgb")
