@@ -201,9 +201,12 @@ class DynamicModel(nn.Module):
 def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_images: int, n_classes: int,
                       features: int = 16, hidden: int = 64, appearance_dim: int = 8,
                       mask_init_background: float | None = None, mask_encoding: str = "geometry",
-                      time_gate: bool = False, dynamic_z_top: float = 1.0) -> KPlanesFieldConfig:
+                      time_gate: bool = False, dynamic_z_top: float = 1.0,
+                      init_optical_depth: float | None = None) -> KPlanesFieldConfig:
     """Field config for ``kind`` over the slab ``bounds``; time resolution = half the frames;
-    ``time_gate``, ``dynamic_z_top``: see :class:`fields.kplanes.KPlanesConfig` (extended only)."""
+    ``time_gate``, ``dynamic_z_top``: see :class:`fields.kplanes.KPlanesConfig` (extended only).
+    ``init_optical_depth``: the fresh field's optical depth along a vertical ray through the whole box
+    (:func:`density_bias_for`); None: the field's default density bias."""
     from fields.dynamic_data import time_resolution
 
     planes = KPlanesConfig(base_resolution=sizing.base_resolution, multipliers=sizing.multipliers,
@@ -212,4 +215,19 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
                            dynamic_z_top=dynamic_z_top if kind == "kplanes-ext" else 1.0)
     return KPlanesFieldConfig(aabb_lo=tuple(bounds.lo), aabb_hi=tuple(bounds.hi), planes=planes, hidden=hidden,
                               n_images=n_images, appearance_dim=appearance_dim, n_classes=n_classes,
-                              mask_init_background=mask_init_background, mask_encoding=mask_encoding)
+                              mask_init_background=mask_init_background, mask_encoding=mask_encoding,
+                              **({} if init_optical_depth is None else
+                                 {"density_bias": density_bias_for(init_optical_depth, bounds.lo[2], bounds.hi[2])}))
+
+
+def density_bias_for(optical_depth: float, lo_z: float, hi_z: float) -> float:
+    """The density bias (added to the density MLP's log-density output) that gives a fresh field, whose
+    output is near 0, about ``optical_depth`` along a vertical ray from the box top ``hi_z`` to its
+    floor ``lo_z`` (world ENU, m): ``log(optical_depth / height)``, density in 1/m. A small value starts
+    the field transparent, so rays reach the ground from the first step."""
+    height = float(hi_z) - float(lo_z)
+    if not (optical_depth > 0 and math.isfinite(optical_depth)):
+        raise ValueError(f"the initial optical depth must be positive and finite, got {optical_depth}")
+    if not (height > 0 and math.isfinite(height)):
+        raise ValueError(f"the box must have a positive, finite height, got {lo_z}..{hi_z} m")
+    return math.log(optical_depth / height)

@@ -5,6 +5,7 @@ walking people (1-1.6 m/s) move 3-5 m between frames >= 3 s apart.
 """
 
 import json
+import math
 import shutil
 import subprocess
 import sys
@@ -14,9 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
 
 from fields.dynamic_data import load_dynamic_flight, normalise_times, time_resolution
-from fields.dynamic_model import DynamicModel, plane_sizing
+from fields.dynamic_model import DynamicModel, density_bias_for, plane_sizing
 from fields.dynamic_simscene import LineSpec, PoseNoise, noisy_poses, write_line_flight
 from fields.dynamic_training import (
     AIR_MARGIN,
@@ -814,3 +817,43 @@ def test_fit_reports_the_ground_shortfall_of_its_rays(dynamic_flight):
     assert 0.0 <= r.air_share <= 1.0
     assert r.air_prior_steps == 2  # the prior is on from 10 % of training: steps 1 and 2 of 3
     assert all("ground_shortfall" in c for c in r.curve)
+
+
+@given(tau=st.floats(1e-3, 10.0), lo=st.floats(-100.0, 100.0), height=st.floats(0.1, 500.0))
+def test_density_bias_for_gives_the_asked_optical_depth(tau, lo, height):
+    """A field of density exp(bias) (1/m) everywhere has optical depth ``tau`` from box top to floor."""
+    bias = density_bias_for(tau, lo, lo + height)
+    assert math.exp(bias) * height == pytest.approx(tau, rel=1e-6)
+
+
+@pytest.mark.parametrize("args", [(0.0, 0.0, 10.0), (-1.0, 0.0, 10.0), (float("nan"), 0.0, 10.0),
+                                  (float("inf"), 0.0, 10.0), (0.2, 5.0, 5.0), (0.2, 5.0, 1.0),
+                                  (0.2, 0.0, float("inf"))])
+def test_density_bias_for_refuses_what_has_no_optical_depth(args):
+    with pytest.raises(ValueError):
+        density_bias_for(*args)
+
+
+@pytest.mark.parametrize("kind", ["kplanes", "kplanes-ext"])
+def test_fresh_field_lets_rays_reach_the_floor(dynamic_flight, kind):
+    """With the default initial optical depth the fresh field is nearly transparent: the training rays
+    reach the box floor (which ends them opaque) with most of their weight. The field's own bias of -1
+    started it as fog that stopped them in the air (bench/RESULTS.md, Table III session 32)."""
+    from fields.data import RayBank
+
+    dd = load_dynamic_flight(dynamic_flight)
+    train, _ = split(dd, 2)
+    gen = torch.Generator().manual_seed(0)
+    bank = RayBank(dd.data.camera, dd.data.cam_from_world)
+    frames = torch.tensor(train)[torch.randint(len(train), (512,), generator=gen)]
+    o, d = bank.rays(frames, torch.randint(bank.hw, (512,), generator=gen))
+
+    def floor_weight(cfg: DynamicFitConfig) -> float:
+        torch.manual_seed(0)
+        model = build_model(dd, train, cfg, dynamic_flight)[0]
+        with torch.no_grad():
+            res = model.render_rays(o, d, torch.full((512,), 0.5), with_mask=False)
+        return float(res["weights"][:, -1].median())
+
+    assert floor_weight(DynamicFitConfig(kind=kind, **TINY)) > 0.6  # 0.80 / 0.81 measured
+    assert floor_weight(DynamicFitConfig(kind=kind, init_optical_depth=None, **TINY)) < 0.3  # 0.18 / 0.20
