@@ -521,6 +521,8 @@ class KPlanesFieldConfig:
     n_images: int = 1
     appearance_dim: int = 8
     n_classes: int = 3
+    #: added to the density MLP's output before exp (density in 1/m): the fresh field's log-density. The
+    #: dynamic fit sets it from the box (:func:`fields.dynamic_model.density_bias_for`); -1 is ~0.37 /m
     density_bias: float = -1.0
     #: background probability of the fresh class-mask head (None: torch's default, ~uniform, i.e.
     #: every place starts 75 % "person"; see :func:`fields.field.init_background_bias`)

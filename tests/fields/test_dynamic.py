@@ -855,5 +855,7 @@ def test_fresh_field_lets_rays_reach_the_floor(dynamic_flight, kind):
             res = model.render_rays(o, d, torch.full((512,), 0.5), with_mask=False)
         return float(res["weights"][:, -1].median())
 
+    sizing = build_model(dd, train, DynamicFitConfig(kind=kind, **TINY), dynamic_flight)[2]
+    assert any(line.startswith("fresh field: optical depth 0.2 through the box") for line in sizing["reasoning"])
     assert floor_weight(DynamicFitConfig(kind=kind, **TINY)) > 0.6  # 0.80 / 0.81 measured
     assert floor_weight(DynamicFitConfig(kind=kind, init_optical_depth=None, **TINY)) < 0.3  # 0.18 / 0.20
