@@ -848,14 +848,15 @@ def test_fresh_field_lets_rays_reach_the_floor(dynamic_flight, kind):
     frames = torch.tensor(train)[torch.randint(len(train), (512,), generator=gen)]
     o, d = bank.rays(frames, torch.randint(bank.hw, (512,), generator=gen))
 
-    def floor_weight(cfg: DynamicFitConfig) -> float:
+    def floor_weight(cfg: DynamicFitConfig) -> tuple[float, list[str]]:
+        """The median ray's weight on the floor sample, and fit.json's sizing reasoning."""
         torch.manual_seed(0)
-        model = build_model(dd, train, cfg, dynamic_flight)[0]
+        model, _, sizing = build_model(dd, train, cfg, dynamic_flight)
         with torch.no_grad():
             res = model.render_rays(o, d, torch.full((512,), 0.5), with_mask=False)
-        return float(res["weights"][:, -1].median())
+        return float(res["weights"][:, -1].median()), sizing["reasoning"]
 
-    sizing = build_model(dd, train, DynamicFitConfig(kind=kind, **TINY), dynamic_flight)[2]
-    assert any(line.startswith("fresh field: optical depth 0.2 through the box") for line in sizing["reasoning"])
-    assert floor_weight(DynamicFitConfig(kind=kind, **TINY)) > 0.6  # 0.80 / 0.81 measured
-    assert floor_weight(DynamicFitConfig(kind=kind, init_optical_depth=None, **TINY)) < 0.3  # 0.18 / 0.20
+    transparent, reasoning = floor_weight(DynamicFitConfig(kind=kind, **TINY))
+    fog, _ = floor_weight(DynamicFitConfig(kind=kind, init_optical_depth=None, **TINY))
+    assert transparent > 0.6 and fog < 0.3  # measured 0.80 / 0.81 and 0.18 / 0.20 (kplanes / kplanes-ext)
+    assert any(line.startswith("fresh field: optical depth 0.2 through the box") for line in reasoning)
