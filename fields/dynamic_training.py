@@ -83,7 +83,7 @@ class DynamicFitConfig:
     #: the fresh field's optical depth along a vertical ray through the whole box (sets the density
     #: bias, :func:`fields.dynamic_model.density_bias_for`); None: the field's fixed bias of -1, an optical
     #: depth of ~4 through the bench flights' 10-11 m boxes. In that fog 99 % of background rays ended in the
-    #: air for the first 17-25 % of a 900 s fit; stock never came down (85 % at the end). At 0.2 against
+    #: air for the first 13-17 % of a 900 s fit; stock never came down (85 % at the end). At 0.2 against
     #: the fog, 900 s, one seed per row: stock +2.9 / +1.7-1.9 dB held-out on the 80 / 300-frame telemetry
     #: flights and +5-6 dB from 30 m; extended -1.0 / -0.6-0.9 dB held-out, +0.7 dB from 30 m (80 frames),
     #: +0.8 dB held-out on exact poses, where it also did without the pose correction what the correction
