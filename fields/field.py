@@ -78,7 +78,9 @@ class FieldConfig:
     appearance_dim: int = 8
     view_dependent: bool = False
     n_classes: int = 3
-    #: added to the raw density before trunc_exp (negative: the box starts nearly empty)
+    #: added to the raw density before trunc_exp (1/m after it): -1 is ~0.37 /m, an optical depth of ~4 down
+    #: the bench's 11 m box, so the fresh field is a fog, not empty. A transparent start (-4) gained nothing
+    #: here, unlike the dynamic fields (bench/RESULTS.md, Table III session 32); kept
     density_bias: float = -1.0
     #: "grid" (own hash grid for the mask) or "geometry" (head on the detached geometry features)
     mask_encoding: str = "grid"
