@@ -17,6 +17,9 @@ held-out frame (time order), measures:
   ground point >= 2 training frames saw (``covered``), SSIM over the frame. ``--out DIR``: the views
   side by side (truth, then each kind).
 
+``bench/dynamic.py`` scores its own fits the same way (:func:`novel_views`, :func:`score_novel_views`;
+its ``--novel-scale``); this bench re-scores kept fits, e.g. at another scale or with the views written out.
+
     uavsim bench dynamic_novel -- --frames 300 --fits DIR [--scale 2] [--every 5] [--json OUT] [--out DIR]
 """
 
