@@ -45,14 +45,13 @@ from bench.fields import covered_mask, rays_to_ground  # noqa: E402
 
 @dataclass
 class NovelViews:
-    """Simulator truth for scoring a dynamic flight's fits from ``scale`` times the distance: for each picked
+    """Simulator truth for scoring a dynamic flight's fits from farther away (:func:`novel_views`): for each picked
     held-out frame (index into the flight) its raised true pose (OpenCV ``cam_from_world``, true ENU), the truth
     render there (H, W, 3) uint8 sRGB, the raised view's pixels whose ground point >= 2 training frames saw
     (H, W) bool, and at the frame's own true pose each pixel's distance (m) along its ray to the ground z = 0 and
     which pixels are background (outside the label boxes, ray meets the ground), both flat (H * W,); and every
     frame's true pose (``true_cam_from_world``), for lining the fits' worlds up with the true one."""
 
-    scale: float
     picked: list[int]
     pose: dict[int, np.ndarray]
     truth_rgb: dict[int, np.ndarray]
@@ -74,7 +73,7 @@ def novel_views(flight: Path, dd, train_idx: list[int], val_idx: list[int], worl
     truth_rows = {f["frame"]: f for f in json.loads(truth_file.read_text())["frames"]}
     true_pose = {i: np.asarray(truth_rows[dd.data.names[i]]["cam_from_world"]) for i in range(dd.n)}
     picked = list(val_idx[:: max(every, 1)])
-    views = NovelViews(float(scale), picked, {}, {}, {}, {}, {}, true_pose)
+    views = NovelViews(picked, {}, {}, {}, {}, {}, true_pose)
     train_true = [true_pose[i] for i in train_idx]
     for i in picked:
         views.pose[i] = raised_along_axis(true_pose[i], scale)
@@ -97,13 +96,13 @@ def score_novel_views(model, dd, train_idx: list[int], views: NovelViews) -> tup
     cam, t01 = dd.data.camera, dd.t01()
     sim = fit_world_similarity(cam, [model.field_pose(dd.data.cam_from_world[i], float(t01[i])) for i in train_idx],
                                [views.true_cam_from_world[i] for i in train_idx])
-    scale = float(np.exp(sim[6]))
+    sim_scale = float(np.exp(sim[6]))  # field metres -> true metres
     rows, renders = [], {}
     for i in views.picked:
         own = model.render_image(cam, model.field_pose(dd.data.cam_from_world[i], float(t01[i])), float(t01[i]),
                                  with_mask=False)
         valid, true_depth, truth = views.background[i], views.true_depth[i], views.truth_rgb[i]
-        rel = np.abs(own["depth"].reshape(-1) * scale - true_depth)[valid] / true_depth[valid]
+        rel = np.abs(own["depth"].reshape(-1) * sim_scale - true_depth)[valid] / true_depth[valid]
         r = model.render_image(cam, field_pose_from_true(views.pose[i], sim), float(t01[i]), with_mask=False)
         renders[i] = (np.clip(r["rgb"], 0, 1) * 255).round().astype(np.uint8)
         rows.append({"frame": dd.data.names[i], "depth_rel_median": float(np.median(rel)),
@@ -111,10 +110,11 @@ def score_novel_views(model, dd, train_idx: list[int], views: NovelViews) -> tup
                      "novel_psnr": psnr(r["rgb"], truth), "novel_psnr_covered": psnr(r["rgb"], truth, views.covered[i]),
                      "novel_ssim": ssim(r["rgb"], truth)})
     mean = {k: float(np.nanmean([row[k] for row in rows])) for k in rows[0] if k != "frame"} if rows else {}
-    return {**mean, "similarity_scale": scale}, rows, renders
+    return {**mean, "similarity_scale": sim_scale}, rows, renders
 
 
 def summary_line(kind: str, mean: dict, scale: float) -> str:
+    """One log line of :func:`score_novel_views`' means, for views from ``scale`` times the distance."""
     return (f"{kind}: depth off by {100 * mean['depth_rel_median']:.1f} % (median; "
             f"{100 * mean['depth_off_10pct']:.0f} % of pixels > 10 % off); at {scale:g}x the distance "
             f"PSNR {mean['novel_psnr']:.2f} dB (covered {mean['novel_psnr_covered']:.2f}), SSIM "
