@@ -27,8 +27,8 @@ Held-out frames sit between two training instants, so a background painted frame
 time planes allow, still passes the held-out test; from higher up it shows. ``--novel-scale`` (default
 2: 30 m) therefore also scores each fit of a simulated flight against simulator truth from that many
 times the distance, over the ground >= 2 training frames saw, as bench/dynamic_novel.py does (JSON
-``stock_novel_psnr``, ``extended_novel_psnr``; bench/RESULTS.md, Table III session 33: the two measures
-rank the kinds oppositely).
+``stock_novel_psnr``, ``extended_novel_psnr``; bench/RESULTS.md, Table III session 33: on telemetry
+poses the two measures rank the kinds oppositely).
 
     uavsim bench dynamic -- [--budget-s 300] [--frames 80] [--width 160] [--json OUT]
     uavsim bench dynamic -- --kinds kplanes --set features=32   # one option changed for both kinds
