@@ -140,7 +140,9 @@ class DynamicFitConfig:
     #: III sessions 22, 23). Stock has settled on its layer by then and keeps it; from step 0 the prior
     #: takes stock off most of it (depth error 64 -> 6-9 %, Table III session 23)
     empty_from: float = 0.1
-    #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation)
+    #: extended only: gate gradients by the box mask (the paper's choice; False for an ablation). Off, extended
+    #: gained 0.8-1.25 dB held-out and lost 1.1-1.3 dB in views from 30 m (80-frame telemetry flight, two seeds;
+    #: bench/RESULTS.md, Table III session 33): the gate is what keeps the background consistent from higher up
     gate: bool = True
     #: extended with ``gate`` only: order each batch's rays into the runs that the gated encoding samples in
     #: place (:func:`gate_run_order`); each ray keeps the jitter it was drawn with, so a step computes what
