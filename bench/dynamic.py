@@ -83,7 +83,12 @@ def setup_torch(threads: int | None) -> None:
         torch.set_num_threads(threads)
 
 
-def prepare(flight: Path, frames: int, width: int, seed: int = 0, jitter_m: float = 0.05,
+#: the seed of the bench flights' simulator world, line and pose noise (``prepare``); the views from higher
+#: up are rendered in the same world
+FLIGHT_SEED = 0
+
+
+def prepare(flight: Path, frames: int, width: int, seed: int = FLIGHT_SEED, jitter_m: float = 0.05,
             jitter_deg: float = 0.15, drift_scale: float = 1.0, dt_s: float = 0.2) -> None:
     """Render the flight once (cached under bench/out); ``jitter_*``: white per-frame pose noise;
     ``drift_scale`` scales the GNSS/IMU Gauss–Markov drift (0: poses consistent up to the jitter, as
@@ -252,7 +257,7 @@ def main() -> None:
     tag += "" if args.dt_s == 0.2 else f"_dt{args.dt_s:g}s"
     flight = args.flight or flight_dir(args.width, args.frames, tag)
     t0 = time.perf_counter()
-    prepare(flight, args.frames, args.width, jitter_m=args.jitter_m, jitter_deg=args.jitter_deg,
+    prepare(flight, args.frames, args.width, seed=FLIGHT_SEED, jitter_m=args.jitter_m, jitter_deg=args.jitter_deg,
             drift_scale=args.drift_scale, dt_s=args.dt_s)
     if args.sfm:
         flight = refine_with_sfm(flight)
@@ -268,8 +273,8 @@ def main() -> None:
         from bench.dynamic_novel import novel_views, score_novel_views, summary_line
         from sim.world import make_world
 
-        views = novel_views(flight, dd, train_idx, val_idx, make_world(seed=0, dynamic=True), args.novel_scale,
-                            args.novel_every)  # the world prepare() renders
+        views = novel_views(flight, dd, train_idx, val_idx, make_world(seed=FLIGHT_SEED, dynamic=True),
+                            args.novel_scale, args.novel_every)
     results = {}
     for kind in args.kinds.split(","):
         cfg = DynamicFitConfig(kind=kind, budget_s=args.budget_s, iters=10**9, threads=args.threads,

@@ -213,11 +213,12 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
                            time_resolution=time_resolution(n_frames), features=features,
                            extended=(kind == "kplanes-ext"), time_gate=time_gate and kind == "kplanes-ext",
                            dynamic_z_top=dynamic_z_top if kind == "kplanes-ext" else 1.0)
-    start = {} if init_optical_depth is None else {
-        "density_bias": density_bias_for(init_optical_depth, bounds.lo[2], bounds.hi[2])}
+    bias = (KPlanesFieldConfig.density_bias if init_optical_depth is None
+            else density_bias_for(init_optical_depth, bounds.lo[2], bounds.hi[2]))
     return KPlanesFieldConfig(aabb_lo=tuple(bounds.lo), aabb_hi=tuple(bounds.hi), planes=planes, hidden=hidden,
                               n_images=n_images, appearance_dim=appearance_dim, n_classes=n_classes,
-                              mask_init_background=mask_init_background, mask_encoding=mask_encoding, **start)
+                              mask_init_background=mask_init_background, mask_encoding=mask_encoding,
+                              density_bias=bias)
 
 
 def density_bias_for(optical_depth: float, lo_z: float, hi_z: float) -> float:
