@@ -8,6 +8,10 @@ Bounds (world ENU metres): a *ground slab* box.
 - Slab top: the 99.5th percentile of point heights above the ground (the tallest object) + 10 %,
   else the fallback ``0.7 x`` the lowest camera height above the ground (a camera sees down onto
   what it overflies; capped at 30 m).
+- Floor (rays that reach it end opaque there): ``floor_margin_m`` below the ground estimate, and with
+  sparse points that far below their 0.5th height percentile; the static fit takes 0.1 m (a view from
+  above sees the floor wherever the field left the ground as fog), the dynamic fit the older rule,
+  5 % of the slab's height and at least 0.5 m.
 - Horizontal extent: where training rays (a sparse pixel grid of every frame) hit the ground, limited
   to ``max_range_factor x`` the camera height so near-horizontal rays do not stretch the box to the
   horizon; the ``100 - coverage_pct`` to ``coverage_pct`` percentiles of those hits, plus a margin
@@ -132,12 +136,17 @@ def ground_hits(camera: Camera, cam_from_world: list[np.ndarray], ground_z: floa
 
 def scene_bounds(flight: Path | None, camera: Camera, cam_from_world: list[np.ndarray],
                  max_range_factor: float = 4.0, margin_m: float = 2.0,
-                 coverage_pct: float = 98.0) -> SceneBounds:
+                 coverage_pct: float = 98.0, floor_margin_m: float | None = None) -> SceneBounds:
     """The ground slab for a flight (see the module docstring). Horizontally, the box spans the
     ``100 - coverage_pct`` to ``coverage_pct`` percentiles of the training rays' ground hits (within
-    reach) plus ``margin_m`` metres; ``coverage_pct=100`` takes every ground point a training ray saw."""
+    reach) plus ``margin_m`` metres; ``coverage_pct=100`` takes every ground point a training ray saw.
+    Its floor lies ``floor_margin_m`` below the ground estimate, and with sparse points at least that far
+    below their 0.5th height percentile (sloping ground reaches below the 5th percentile); None: 5 % of
+    the slab's height, at least 0.5 m, below the ground estimate."""
     if not 50.0 < coverage_pct <= 100.0:
         raise ValueError(f"coverage_pct must be in (50, 100], got {coverage_pct}")
+    if floor_margin_m is not None and not (0.0 < floor_margin_m < math.inf):
+        raise ValueError(f"floor_margin_m must be positive and finite, got {floor_margin_m}")
     notes = []
     points = find_sparse_points(Path(flight)) if flight is not None else None
     centres = np.array([-T[:3, :3].T @ T[:3, 3] for T in cam_from_world])
@@ -165,7 +174,13 @@ def scene_bounds(flight: Path | None, camera: Camera, cam_from_world: list[np.nd
     hits_k = hits[near] if near.sum() > 10 else hits
     lo_xy = np.percentile(hits_k, 100.0 - coverage_pct, axis=0) - margin_m
     hi_xy = np.percentile(hits_k, coverage_pct, axis=0) + margin_m
-    bottom = ground - max(0.5, 0.05 * (top - ground))
+    if floor_margin_m is None:
+        below = max(0.5, 0.05 * (top - ground))
+    else:
+        low = ground if source == "telemetry" else min(ground, float(np.percentile(points[:, 2], 0.5)))
+        below = ground - low + float(floor_margin_m)
+    bottom = ground - below
+    notes.append(f"floor {bottom:.2f} m, {below:.2f} m below the ground: rays that reach it end there")
     notes.append(f"xy extent from {len(hits_k)} ground hits of training rays ({100 - coverage_pct:g}-"
                  f"{coverage_pct:g}th pct + {margin_m} m)")
     return SceneBounds((float(lo_xy[0]), float(lo_xy[1]), bottom), (float(hi_xy[0]), float(hi_xy[1]), top),

@@ -52,6 +52,18 @@ def test_bounds_and_sizing_from_telemetry(tiny_flight):
     assert p.resolutions[0][0] < p.resolutions[-1][0]
 
 
+def test_bounds_floor_lies_the_asked_margin_below_the_ground(tiny_flight):
+    d = load_flight(tiny_flight)
+    default = scene_bounds(tiny_flight, d.camera, d.cam_from_world)
+    near = scene_bounds(tiny_flight, d.camera, d.cam_from_world, floor_margin_m=0.1)
+    assert default.lo[2] == pytest.approx(-max(0.5, 0.05 * default.hi[2])) and near.lo[2] == pytest.approx(-0.1)
+    assert near.hi == default.hi and near.lo[:2] == default.lo[:2]
+    assert any("0.10 m below the ground" in n for n in near.notes)
+    for bad in (0.0, -0.2, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="floor_margin_m"):
+            scene_bounds(tiny_flight, d.camera, d.cam_from_world, floor_margin_m=bad)
+
+
 def test_bounds_coverage_takes_every_ground_hit(tiny_flight):
     """coverage_pct=100 spans every ground point a training ray saw (+ the margin); 98 trims the tails."""
     from fields.scene import ground_hits
@@ -82,6 +94,27 @@ def test_bounds_from_sparse_points(tmp_path, tiny_flight):
     b = scene_bounds(flight, d.camera, d.cam_from_world)
     assert b.source == "sparse points"
     assert abs(b.ground_z - 2.0) < 0.05 and b.hi[2] > 5.0
+    assert b.lo[2] == pytest.approx(b.ground_z - max(0.5, 0.05 * (b.hi[2] - b.ground_z)))
+    # flat ground: the floor 0.1 m below its 0.5th percentile, within a few cm of the ground estimate
+    near = scene_bounds(flight, d.camera, d.cam_from_world, floor_margin_m=0.1)
+    assert near.ground_z - 0.15 < near.lo[2] <= near.ground_z - 0.1
+
+
+def test_bounds_floor_clears_sloping_ground_below_the_ground_estimate(tmp_path, tiny_flight):
+    """On ground sloping 0 to -3 m the 5th percentile (the ground estimate) is ~ -2.85 m; the floor goes below the
+    lowest points, not 0.1 m under the estimate."""
+    flight = tmp_path / "f"
+    shutil.copytree(tiny_flight, flight)
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-10, 10, (2000, 2))
+    pts = np.c_[xy, -3.0 * (xy[:, 0] + 10) / 20]
+    ply = flight / "derived" / "points.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 2000\nproperty float x\nproperty float y\n"
+                   "property float z\nend_header\n" + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+    d = load_flight(flight)
+    b = scene_bounds(flight, d.camera, d.cam_from_world, floor_margin_m=0.1)
+    assert b.ground_z > -2.9
+    assert b.lo[2] == pytest.approx(np.percentile(pts[:, 2], 0.5) - 0.1, abs=1e-3) and b.lo[2] < b.ground_z - 0.2
 
 
 def test_black_and_saturated_frames_train_finite(tmp_path, tiny_flight):
