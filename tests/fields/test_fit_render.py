@@ -82,14 +82,19 @@ def test_bounds_coverage_takes_every_ground_hit(tiny_flight):
             scene_bounds(tiny_flight, d.camera, d.cam_from_world, coverage_pct=bad)
 
 
+def write_sparse_points(flight, pts: np.ndarray) -> None:
+    """``pts`` (N, 3) ENU metres as the flight's SfM point cloud (ASCII ``derived/points.ply``)."""
+    (flight / "derived" / "points.ply").write_text(
+        f"ply\nformat ascii 1.0\nelement vertex {len(pts)}\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n" + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+
+
 def test_bounds_from_sparse_points(tmp_path, tiny_flight):
     flight = tmp_path / "f"
     shutil.copytree(tiny_flight, flight)
     rng = np.random.default_rng(0)
     pts = np.c_[rng.uniform(-10, 10, (500, 2)), np.r_[rng.normal(2.0, 0.01, 480), rng.uniform(2, 6, 20)]]
-    ply = flight / "derived" / "points.ply"
-    ply.write_text("ply\nformat ascii 1.0\nelement vertex 500\nproperty float x\nproperty float y\n"
-                   "property float z\nend_header\n" + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+    write_sparse_points(flight, pts)
     d = load_flight(flight)
     b = scene_bounds(flight, d.camera, d.cam_from_world)
     assert b.source == "sparse points"
@@ -101,16 +106,14 @@ def test_bounds_from_sparse_points(tmp_path, tiny_flight):
 
 
 def test_bounds_floor_clears_sloping_ground_below_the_ground_estimate(tmp_path, tiny_flight):
-    """On ground sloping 0 to -3 m the 5th percentile (the ground estimate) is ~ -2.85 m; the floor goes below the
-    lowest points, not 0.1 m under the estimate."""
+    """On ground sloping 0 to -3 m the 5th percentile (the ground estimate) is ~ -2.85 m; the floor goes 0.1 m below
+    the 0.5th percentile, under all but the lowest 0.5 % of the points, not 0.1 m under the estimate."""
     flight = tmp_path / "f"
     shutil.copytree(tiny_flight, flight)
     rng = np.random.default_rng(1)
     xy = rng.uniform(-10, 10, (2000, 2))
     pts = np.c_[xy, -3.0 * (xy[:, 0] + 10) / 20]
-    ply = flight / "derived" / "points.ply"
-    ply.write_text("ply\nformat ascii 1.0\nelement vertex 2000\nproperty float x\nproperty float y\n"
-                   "property float z\nend_header\n" + "".join(f"{x} {y} {z}\n" for x, y, z in pts))
+    write_sparse_points(flight, pts)
     d = load_flight(flight)
     b = scene_bounds(flight, d.camera, d.cam_from_world, floor_margin_m=0.1)
     assert b.ground_z > -2.9
