@@ -199,6 +199,9 @@ def test_cli_fit_then_render(tmp_path, tiny_flight, capsys):
     info = json.loads((flight / "derived" / "fields" / "fit.json").read_text())
     assert info["steps"] == 20 and info["params"] > 0 and info["mb"] <= 1.0
     assert info["heldout"]["psnr"] > 0 and info["sizing"]["reasoning"]
+    # the static fit's floor: 0.1 m below the ground (FitConfig.box_floor_margin_m), and fit.json says so
+    assert info["bounds"]["lo"][2] == pytest.approx(-0.1)
+    assert any("0.10 m below the ground" in n for n in info["bounds"]["notes"])
     d = load_flight(flight)
     poses = novel_poses_file(d.camera, [orbit_pose(35, 15, -70, 0), orbit_pose(50, 10, -80, 90)])
     poses.frames[0].frame = "000003.png"
