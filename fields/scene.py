@@ -153,11 +153,12 @@ def scene_bounds(flight: Path | None, camera: Camera, cam_from_world: list[np.nd
     if points is not None and len(points) >= 50:
         z = points[:, 2]
         ground = float(np.percentile(z, 5))
+        lowest = float(np.percentile(z, 0.5))  # sloping ground reaches below the ground estimate
         top = ground + 1.1 * max(float(np.percentile(z, 99.5)) - ground, 1.0)
         source = "sparse points"
         notes.append(f"ground z {ground:.2f} m = 5th pct of {len(points)} sparse points; top = 99.5th pct + 10 %")
     else:
-        ground = 0.0
+        ground = lowest = 0.0
         h_min = float((centres[:, 2] - ground).min())
         if h_min <= 0:
             raise ValueError(f"a camera is at or below the assumed ground (height {h_min:.2f} m)")
@@ -177,8 +178,7 @@ def scene_bounds(flight: Path | None, camera: Camera, cam_from_world: list[np.nd
     if floor_margin_m is None:
         below = max(0.5, 0.05 * (top - ground))
     else:
-        low = ground if source == "telemetry" else min(ground, float(np.percentile(points[:, 2], 0.5)))
-        below = ground - low + float(floor_margin_m)
+        below = ground - lowest + float(floor_margin_m)
     bottom = ground - below
     notes.append(f"floor {bottom:.2f} m, {below:.2f} m below the ground: rays that reach it end there")
     notes.append(f"xy extent from {len(hits_k)} ground hits of training rays ({100 - coverage_pct:g}-"
