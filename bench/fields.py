@@ -97,17 +97,16 @@ CONFIGS = {
     # the `fit` default (FitConfig) since session 10: 32 samples spread over the occupied cells, not the whole slab;
     # its box spans every ground hit since session 15 (measured as `hash-occ32-allhits` before the default
     # changed; the old box is hash-occ32-box98); its floor 0.1 m below the ground since session 34 (measured as
-    # `hash-occ32-floor01` before the default changed; the old floor is hash-occ32-floor05)
-    "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
-    # box pixels that see only ground (< 10 % of their weight over 10 cm up) teach no mask (session 35)
-    "hash-occ32-groundignore": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
-                                "mask_box_min_height_m": 0.1, "mask_box_ground": "ignore"},
-        # the occupancy cells the label boxes vouch for stay occupied (fields.label_hull; session 35)
-    "hash-occ32-keep": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0,
-                        "occupancy_keep_share": 0.5},
-    # a quarter of each ray batch drawn from box pixels (importance-weighted mask loss; the RGB loss leans to people)
-    "hash-occ32-pos25": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.25},
-    # the same, the RGB loss importance-weighted like the mask loss (unbiased: only the mask leans to people)
+    # `hash-occ32-floor01` before the default changed; the old floor is hash-occ32-floor05); a quarter of each ray
+    # batch drawn from box pixels, both losses importance-weighted, since session 35 (measured as
+    # `hash-occ32-pos25-rgbiw` before the default changed; uniform rays are hash-occ32-pos0)
+    "hash-occ32": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.25,
+                   "rgb_importance_weighted": True},
+    "hash-occ32-pos0": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.0},
+    # a quarter of each ray batch drawn from box pixels, the RGB loss plain (it leans to the people those rays hit)
+    "hash-occ32-pos25": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.25,
+                         "rgb_importance_weighted": False},
+    # both losses importance-weighted (the RGB loss sees every pixel equally; only the mask leans to people)
     "hash-occ32-pos25-rgbiw": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.25,
                                "rgb_importance_weighted": True},
     "hash-occ32-pos10-rgbiw": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.1,

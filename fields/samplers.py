@@ -9,9 +9,7 @@
   stretches, with a small share (``empty_share`` of the weight per metre) left in empty cells so a
   cell the grid wrongly empties can still be learned back. A fresh grid is all occupied, i.e.
   stratified. Evenly over *all* occupied stretches, not transmittance-weighted: a
-  semi-transparent person and the ground behind it both keep samples. Cells set in ``keep``
-  (:func:`fields.label_hull.vouched_cells`: where the label boxes agree a person stands) count as
-  occupied whatever their density, so a person the field forms late is not starved of samples.
+  semi-transparent person and the ground behind it both keep samples.
 
 Both return interval edges ``t_edges`` (R, n+1) in metres along unit directions; rays that miss
 the box get zero-length intervals (weight 0 everywhere, i.e. pure background).
@@ -120,31 +118,17 @@ class OccupancySampler:
         self.grid = torch.full(self.grid_shape, self.FRESH)
         self._cursor = 0
         self._occ = None  # occupied(), cached until the grid changes (the box lo/hi is fixed per model)
-        #: (x, y, z) bool cells that count as occupied whatever their density (None: none)
-        self.keep: torch.Tensor | None = None
-
-    def keep_occupied(self, cells: torch.Tensor | None) -> None:
-        """Cells (``grid_shape`` bool) that count as occupied whatever their density; None clears them."""
-        if cells is not None and tuple(cells.shape) != self.grid_shape:
-            raise ValueError(f"keep cells {tuple(cells.shape)} do not match the grid {self.grid_shape}")
-        self.keep = None if cells is None else cells.to(device=self.grid.device, dtype=torch.bool)
-        self._occ = None
 
     def state_dict(self) -> dict:
-        state = {"grid": self.grid.clone(), "cursor": self._cursor}
-        if self.keep is not None:
-            state["keep"] = self.keep.clone()
-        return state
+        return {"grid": self.grid.clone(), "cursor": self._cursor}
 
     def load_state_dict(self, state: dict) -> None:
         self.grid = state["grid"].clone()
         self._cursor = int(state["cursor"])
-        self.keep_occupied(state.get("keep"))  # checkpoints from before ``keep`` have none
+        self._occ = None
 
     def to(self, device) -> OccupancySampler:
         self.grid = self.grid.to(device)
-        if self.keep is not None:
-            self.keep = self.keep.to(device)
         self._occ = None
         return self
 
@@ -173,14 +157,10 @@ class OccupancySampler:
         self._occ = None
 
     def occupied(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-        """(gx, gy, gz) bool: optical depth across a cell >= 0.01 at the grid's density, or a ``keep``
-        cell; dilated by one cell."""
+        """(gx, gy, gz) bool: optical depth across a cell >= 0.01 at the grid's density, dilated by one cell."""
         if self._occ is None:
             cell = float(((hi - lo) / torch.tensor(self.grid_shape, device=lo.device, dtype=lo.dtype)).min())
-            occ = self.grid >= 0.01 / cell
-            if self.keep is not None:
-                occ = occ | self.keep
-            occ = occ.float()[None, None]
+            occ = (self.grid >= 0.01 / cell).float()[None, None]
             self._occ = F.max_pool3d(occ, 3, stride=1, padding=1)[0, 0] > 0
         return self._occ
 

@@ -1,6 +1,5 @@
 """The mask-only phase: live samples of cached rays on a frozen geometry, composited sparsely."""
 
-import pytest
 import torch
 
 from fields.data import load_flight
@@ -94,29 +93,23 @@ def test_cached_rays_composite_like_the_renderer():
     assert torch.isfinite(cache.loss(m, 64, torch.Generator().manual_seed(0)))
 
 
-def test_box_pixels_that_see_the_ground_are_found():
-    """Two samples per ray, at 1.2 m and 0.02 m: a box pixel with >= 10 % of its weight up high sees
-    a person (or is half on a head), one with less sees ground; non-box pixels and non-finite weights
-    never count; a raised ground (z = 5 m) makes every sample ground."""
-    from fields.training import box_pixels_seeing_ground
+def test_box_pixels_that_see_the_ground_are_taught_as_background():
+    """Two samples per ray, at 1.2 m and 0.02 m: a box pixel with >= 10 % of its weight up high keeps
+    its class (a person, or a pixel half on a head), one with less becomes background; non-box pixels
+    and non-finite weights are untouched; a raised ground (z = 5 m) makes every sample ground."""
+    from fields.training import ground_in_box_as_background
 
     z = torch.tensor([[1.2, 0.02]] * 5)
     w = torch.tensor([[0.0, 1.0], [0.9, 0.1], [0.5, 0.5], [float("nan"), 0.5], [0.05, 0.9]])
     target = torch.tensor([2, 1, 3, 1, 2])
-    assert box_pixels_seeing_ground(target, w, z, 0.0, 0.1).tolist() == [True, False, False, False, True]
-    assert not box_pixels_seeing_ground(torch.zeros(5, dtype=torch.long), w, z, 0.0, 0.1).any()
-    assert box_pixels_seeing_ground(target, w, z, 5.0, 0.1).tolist() == [True, True, True, False, True]
+    assert ground_in_box_as_background(target, w, z, 0.0, 0.1).tolist() == [0, 1, 3, 1, 0]
+    assert ground_in_box_as_background(torch.zeros(5, dtype=torch.long), w, z, 0.0, 0.1).tolist() == [0] * 5
+    assert ground_in_box_as_background(target, w, z, 5.0, 0.1).tolist() == [0, 0, 0, 1, 0]
 
 
-@pytest.mark.parametrize("taught", ["background", "ignore"])
-def test_fit_with_the_ground_cut_keeps_finite_weights(tiny_flight, taught):
+def test_fit_with_the_ground_cut_keeps_finite_weights(tiny_flight):
     data = load_flight(tiny_flight)
     cfg = FitConfig(iters=4, budget_s=None, n_samples=8, batch_rays=256, budget_mb=1.0, threads=1,
-                    mask_box_min_height_m=0.1, mask_box_ground=taught, mask_pos_fraction=0.25)
+                    mask_box_min_height_m=0.1, mask_pos_fraction=0.25)
     res = fit(data, cfg)
     assert all(torch.isfinite(p).all() for p in res.model.parameters())
-
-
-def test_an_unknown_ground_rule_is_refused(tiny_flight):
-    with pytest.raises(ValueError, match="mask_box_ground"):
-        fit(load_flight(tiny_flight), FitConfig(iters=1, budget_s=None, mask_box_ground="person"))
