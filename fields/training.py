@@ -87,9 +87,9 @@ class FitConfig:
     mask_encoding: str = "grid"
     mask_log2_table: int = 16
     #: share of each ray batch drawn from pixels inside label boxes (0: uniform over all pixels). 0.25 with
-    #: ``rgb_importance_weighted`` against 0 at 300 s on 2 cores: held-out mask box IoU 0.857 / 0.861 at the
-    #: calibrated cut against 0.765-0.805, synthesis recall and precision 1.0 at 35 and 50 m; the price is
-    #: 0.4-0.8 dB at 50 m (25.18 / 25.19 against 25.61-26.01 dB) (bench/RESULTS.md, static session 35)
+    #: ``rgb_importance_weighted`` against 0 at 300 s on 2 cores, three runs: held-out mask box IoU 0.857-0.861 at
+    #: the calibrated cut against 0.765-0.805, synthesis recall and precision 1.0 at 35 and 50 m; the price is
+    #: 0.4-0.8 dB at 50 m (25.16-25.19 against 25.61-26.01 dB) (bench/RESULTS.md, static session 35)
     mask_pos_fraction: float = 0.25
     #: with ``mask_pos_fraction`` > 0, the RGB loss is importance-weighted like the mask loss (True: the
     #: colour fit sees every pixel equally) or plain (False: it leans to the people the extra box rays hit,
@@ -438,20 +438,18 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         fi, pi = draw(train_t, cfg.batch_rays, n_pos)
         o, d = bank.rays(fi, pi)
         target = images[fi, pi].float() / 255.0
+        boxed = masks[fi, pi]
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
             res = model.render_rays(o, d, fi, train=True, generator=gen, with_mask=joint_mask,
                                     pixel_rad=data.camera.pixel_rad)
-            if cfg.rgb_importance_weighted and n_pos:
-                loss_rgb = torch.mean(((res["rgb"] - target) ** 2).mean(-1) * iw[(masks[fi, pi] > 0).long()])
-            else:
-                loss_rgb = torch.mean((res["rgb"] - target) ** 2)
+            # importance weights follow how each ray was drawn (inside a box or not)
+            loss_rgb = rgb_mse(res["rgb"], target, iw[(boxed > 0).long()] if cfg.rgb_importance_weighted else None)
             loss = loss_rgb
             if cfg.lambda_dist > 0:
                 loss = loss + cfg.lambda_dist * model.distortion(res)
             if joint_mask:
                 m_ok = has_mask[fi]
                 if m_ok.any():
-                    boxed = masks[fi, pi]
                     tgt = boxed
                     if cfg.mask_box_min_height_m is not None:
                         tgt = ground_in_box_as_background(boxed, res["weights"].detach(), res["sample_z"],
@@ -570,6 +568,14 @@ def ground_in_box_as_background(target: torch.Tensor, weights: torch.Tensor, sam
     above = (weights * (sample_z > ground_z + min_height_m)).sum(-1)
     on_ground = torch.isfinite(above) & (above < min_share)
     return torch.where((target > 0) & on_ground, torch.zeros_like(target), target)
+
+
+def rgb_mse(rgb: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean squared colour error of rays (R, 3); with ``weights`` (R,) each ray's mean over its channels is
+    weighted (importance weights: :func:`importance_weights`), so the batch mean stays unbiased."""
+    if weights is None:
+        return torch.mean((rgb - target) ** 2)
+    return torch.mean(((rgb - target) ** 2).mean(-1) * weights)
 
 
 def _mask_nll(probs: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

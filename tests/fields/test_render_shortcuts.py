@@ -135,3 +135,16 @@ def test_importance_weights_keep_the_loss_unbiased():
         weighted = torch.where(pos, w[1], w[0]) * loss
         expectation = (n_uni * weighted.mean() + n_box * weighted[pos].mean()) / batch
         assert float(expectation) == pytest.approx(float(loss.mean()), rel=1e-6)  # float32 weights
+
+
+def test_rgb_mse_weights_each_ray_by_how_it_was_drawn():
+    """Hand-computed: ray errors (per channel) 0.1 and 0.3 -> squared means 0.01 and 0.09. Plain: 0.05.
+    Weighted 1.5 (a uniform ray) and 0.5 (a box ray): (1.5 * 0.01 + 0.5 * 0.09) / 2 = 0.03. Uniform
+    weights of 1 (no box rays drawn) give the plain mean."""
+    from fields.training import importance_weights, rgb_mse
+
+    rgb, target = torch.tensor([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3]]), torch.zeros(2, 3)
+    assert torch.isclose(rgb_mse(rgb, target), torch.tensor(0.05))
+    assert torch.isclose(rgb_mse(rgb, target, torch.tensor([1.5, 0.5])), torch.tensor(0.03))
+    no_box_rays = importance_weights(2, 0, 100, 5, "cpu")
+    assert torch.isclose(rgb_mse(rgb, target, no_box_rays[torch.tensor([0, 1])]), torch.tensor(0.05))
