@@ -87,9 +87,9 @@ class FitConfig:
     mask_encoding: str = "grid"
     mask_log2_table: int = 16
     #: share of each ray batch drawn from pixels inside label boxes (0: uniform over all pixels). 0.25 with
-    #: ``rgb_importance_weighted`` against 0 at 300 s on 2 cores, three runs: held-out mask box IoU 0.857-0.861 at
+    #: ``rgb_importance_weighted`` against 0 at 300 s on 2 cores, four runs: held-out mask box IoU 0.856-0.861 at
     #: the calibrated cut against 0.765-0.805, synthesis recall and precision 1.0 at 35 and 50 m; the price is
-    #: 0.4-0.8 dB at 50 m (25.16-25.19 against 25.61-26.01 dB) (bench/RESULTS.md, static session 35)
+    #: 0.4-0.8 dB at 50 m (25.16-25.25 against 25.61-26.01 dB) (bench/RESULTS.md, static session 35)
     mask_pos_fraction: float = 0.25
     #: with ``mask_pos_fraction`` > 0, the RGB loss is importance-weighted like the mask loss (True: the
     #: colour fit sees every pixel equally) or plain (False: it leans to the people the extra box rays hit,
