@@ -106,9 +106,7 @@ CONFIGS = {
     # a quarter of each ray batch drawn from box pixels, the RGB loss plain (it leans to the people those rays hit)
     "hash-occ32-pos25": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.25,
                          "rgb_importance_weighted": False},
-    # both losses importance-weighted (the RGB loss sees every pixel equally; only the mask leans to people)
-    "hash-occ32-pos25-rgbiw": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.25,
-                               "rgb_importance_weighted": True},
+    # a tenth of each ray batch drawn from box pixels, both losses importance-weighted
     "hash-occ32-pos10-rgbiw": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.1,
                                "rgb_importance_weighted": True},
     # the default with each hash level damped where the training frames saw the ground coarser than its cells

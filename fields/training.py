@@ -439,11 +439,11 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         o, d = bank.rays(fi, pi)
         target = images[fi, pi].float() / 255.0
         boxed = masks[fi, pi]
+        ray_w = iw[(boxed > 0).long()]  # importance weights follow how each ray was drawn (inside a box or not)
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
             res = model.render_rays(o, d, fi, train=True, generator=gen, with_mask=joint_mask,
                                     pixel_rad=data.camera.pixel_rad)
-            # importance weights follow how each ray was drawn (inside a box or not)
-            loss_rgb = rgb_mse(res["rgb"], target, iw[(boxed > 0).long()] if cfg.rgb_importance_weighted else None)
+            loss_rgb = rgb_mse(res["rgb"], target, ray_w if cfg.rgb_importance_weighted else None)
             loss = loss_rgb
             if cfg.lambda_dist > 0:
                 loss = loss + cfg.lambda_dist * model.distortion(res)
@@ -454,10 +454,8 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
                     if cfg.mask_box_min_height_m is not None:
                         tgt = ground_in_box_as_background(boxed, res["weights"].detach(), res["sample_z"],
                                                           model.background.ground_z, cfg.mask_box_min_height_m)
-                    tgt, boxed = tgt[m_ok], boxed[m_ok]
-                    # importance weights follow how the ray was drawn (inside a box or not)
-                    loss = loss + cfg.lambda_mask * _mask_nll(res["mask_probs"][m_ok], tgt,
-                                                              fg_w[tgt] * iw[(boxed > 0).long()])
+                    tgt = tgt[m_ok]
+                    loss = loss + cfg.lambda_mask * _mask_nll(res["mask_probs"][m_ok], tgt, fg_w[tgt] * ray_w[m_ok])
             if cfg.lambda_empty > 0:
                 air = upper_box_points(model.field.lo, model.field.hi, 4096, 0.3, gen)  # upper 70 % of the slab
                 loss = loss + cfg.lambda_empty * model.field.density(air).clamp_max(10).mean()
