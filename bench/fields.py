@@ -106,6 +106,9 @@ CONFIGS = {
     # a quarter of each ray batch drawn from box pixels, the RGB loss plain (it leans to the people those rays hit)
     "hash-occ32-pos25": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.25,
                          "rgb_importance_weighted": False},
+    # the default's box rays for the first half of the budget only, uniform rays after it
+    "hash-occ32-posuntil50": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.25,
+                              "rgb_importance_weighted": True, "mask_pos_until": 0.5},
     # a tenth of each ray batch drawn from box pixels, both losses importance-weighted
     "hash-occ32-pos10-rgbiw": {"encoding": "hash", "sampler": "occupancy", "n_samples": 32, "mask_pos_fraction": 0.1,
                                "rgb_importance_weighted": True},

@@ -95,6 +95,9 @@ class FitConfig:
     #: colour fit sees every pixel equally) or plain (False: it leans to the people the extra box rays hit,
     #: measured -1.0 to -1.5 dB at 50 m for the same box IoU)
     rgb_importance_weighted: bool = True
+    #: box rays (``mask_pos_fraction``) are drawn until this share of the main training (by seconds, or by
+    #: steps without a budget) has passed; after it every ray is uniform (1: throughout)
+    mask_pos_until: float = 1.0
     #: a box pixel with under 10 % of its rendering weight (current geometry, no gradient) higher than
     #: this above the ground sees the ground around the person, not the person: it is taught as
     #: background (None: every box pixel is the box's class, the paper's filled boxes)
@@ -372,6 +375,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     joint_mask = cfg.lambda_mask > 0 and (cfg.mask_joint or share == 0)
     n_pos = int(round(cfg.mask_pos_fraction * cfg.batch_rays)) if joint_mask and len(pos_frame) else 0
     iw = importance_weights(cfg.batch_rays, n_pos, len(train_idx) * hw, len(pos_frame), dev)
+    iw_uniform = torch.ones(2, device=dev)  # every ray drawn uniformly: no importance weighting
     evals_s = sorted(eval_at_s or [])
     evals_i = sorted(eval_at_iters or [])
 
@@ -435,11 +439,13 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
         lr = cfg.lr * cfg.lr_final ** progress()
         for g in optim.param_groups:
             g["lr"] = lr * g.get("scale", 1.0)
-        fi, pi = draw(train_t, cfg.batch_rays, n_pos)
+        box_rays = n_pos if progress() < cfg.mask_pos_until else 0
+        fi, pi = draw(train_t, cfg.batch_rays, box_rays)
         o, d = bank.rays(fi, pi)
         target = images[fi, pi].float() / 255.0
         boxed = masks[fi, pi]
-        ray_w = iw[(boxed > 0).long()]  # importance weights follow how each ray was drawn (inside a box or not)
+        # importance weights follow how each ray was drawn (inside a box or not)
+        ray_w = (iw if box_rays else iw_uniform)[(boxed > 0).long()]
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
             res = model.render_rays(o, d, fi, train=True, generator=gen, with_mask=joint_mask,
                                     pixel_rad=data.camera.pixel_rad)

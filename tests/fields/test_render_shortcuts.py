@@ -107,12 +107,13 @@ def test_positive_pixels_only_inside_boxes_of_labelled_training_frames():
     assert fr.tolist() == [0] and px.tolist() == [1 * 5 + 2]
 
 
-@pytest.mark.parametrize("rgb_weighted", [False, True])
-def test_mask_budget_and_oversampled_fit(tiny_flight, rgb_weighted):
+@pytest.mark.parametrize(("rgb_weighted", "pos_until"), [(False, 1.0), (True, 1.0), (True, 0.5)])
+def test_mask_budget_and_oversampled_fit(tiny_flight, rgb_weighted, pos_until):
     d = load_flight(tiny_flight)
     tr, _ = d.split(8)
     cfg = FitConfig(iters=15, budget_s=None, batch_rays=256, n_samples=16, budget_mb=1.0, threads=1,
-                    log_every_s=1e9, mask_pos_fraction=0.25, rgb_importance_weighted=rgb_weighted)
+                    log_every_s=1e9, mask_pos_fraction=0.25, rgb_importance_weighted=rgb_weighted,
+                    mask_pos_until=pos_until)
     model, _, sizing = build_model(d, tr, cfg, None)
     assert model.field.mask_grid is not None and model.param_count() * 4e-6 <= 1.0
     assert any("mask grid" in r for r in sizing.reasoning)
