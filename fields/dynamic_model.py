@@ -202,10 +202,9 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
                       features: int = 16, hidden: int = 64, appearance_dim: int = 8,
                       mask_init_background: float | None = None, mask_encoding: str = "geometry",
                       time_gate: bool = False, dynamic_z_top: float = 1.0,
-                      init_optical_depth: float | None = None, fuse_residual: bool = False) -> KPlanesFieldConfig:
+                      init_optical_depth: float | None = None) -> KPlanesFieldConfig:
     """Field config for ``kind`` over the slab ``bounds``; time resolution = half the frames;
-    ``time_gate``, ``dynamic_z_top``: see :class:`fields.kplanes.KPlanesConfig`; ``fuse_residual``:
-    :class:`fields.kplanes.KPlanesFieldConfig` (all three extended only).
+    ``time_gate``, ``dynamic_z_top``: see :class:`fields.kplanes.KPlanesConfig` (extended only).
     ``init_optical_depth``: the fresh field's optical depth along a vertical ray through the whole box
     (:func:`density_bias_for`); None: the field's default density bias."""
     from fields.dynamic_data import time_resolution
@@ -219,7 +218,7 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
     return KPlanesFieldConfig(aabb_lo=tuple(bounds.lo), aabb_hi=tuple(bounds.hi), planes=planes, hidden=hidden,
                               n_images=n_images, appearance_dim=appearance_dim, n_classes=n_classes,
                               mask_init_background=mask_init_background, mask_encoding=mask_encoding,
-                              density_bias=bias, fuse_residual=fuse_residual and kind == "kplanes-ext")
+                              density_bias=bias)
 
 
 def density_bias_for(optical_depth: float, lo_z: float, hi_z: float) -> float:

@@ -534,11 +534,6 @@ class KPlanesFieldConfig:
     mask_encoding: str = "geometry"
     mask_features: int = 4
     mask_multipliers: tuple[int, ...] = (2, 4)
-    #: extended only: the fusion MLP adds to ``f_s`` instead of replacing it (fused = ``f_s`` + MLP(``f_s``,
-    #: ``f_d``, mask values), the MLP's last layer starting at zero). A fresh field then decodes ``f_s`` as
-    #: stock K-Planes decodes its planes' product, and the background's colour gradient reaches the static
-    #: planes directly, not only through the MLP
-    fuse_residual: bool = False
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -575,12 +570,6 @@ class KPlanesField(nn.Module):
             # fuse f_s, f_d and the mask values into one D-dim feature, as the paper does
             self.fuse = nn.Sequential(nn.Linear(enc_dim, h), nn.ReLU(), nn.Linear(h, d * self.encoding.n_scales))
             enc_dim = d * self.encoding.n_scales
-            if config.fuse_residual:
-                nn.init.zeros_(self.fuse[-1].weight)
-                nn.init.zeros_(self.fuse[-1].bias)
-                # ``f_s`` of scale s is the first d of the encoding's 2d feature columns for that scale
-                cols = [2 * d * s + k for s in range(self.encoding.n_scales) for k in range(d)]
-                self.register_buffer("static_columns", torch.tensor(cols, dtype=torch.long), persistent=False)
         self.geo_mlp = nn.Sequential(nn.Linear(enc_dim, h), nn.ReLU(), nn.Linear(h, 1 + config.geo_features))
         self.appearance = nn.Embedding(max(1, config.n_images), config.appearance_dim)
         nn.init.zeros_(self.appearance.weight)
@@ -622,8 +611,7 @@ class KPlanesField(nn.Module):
         enc = self.encoding(x01, times01, dynamic_gate, space_points)
         feat = enc["features"]
         if self.config.planes.extended:
-            fused = self.fuse(feat)
-            feat = fused + feat.index_select(1, self.static_columns) if self.config.fuse_residual else fused
+            feat = self.fuse(feat)
         hgeo = self.geo_mlp(feat).float()
         sigma = torch.exp(torch.clamp(hgeo[:, 0] + self.config.density_bias, max=15.0)) * inside
         return x01, enc, sigma, hgeo[:, 1:]

@@ -287,30 +287,3 @@ def test_a_faded_out_scale_gives_zero_features_and_no_gradient_to_its_planes(ext
     fine = enc.dynamic_planes[6:9] if not extended else list(enc.static_planes[3:]) + list(enc.dynamic_planes[6:9])
     assert all(p.grad is None or (p.grad == 0).all() for p in fine)
     assert enc.dynamic_planes[0].grad is not None and enc.dynamic_planes[0].grad.abs().sum() > 0
-
-
-def test_residual_fusion_starts_as_the_static_planes_product_and_passes_their_gradient():
-    """``fuse_residual``: a fresh extended field decodes ``f_s`` (the static planes' product per scale, by the
-    slow reference sampler) exactly, and a static pixel's colour gradient reaches the static planes through the
-    skip even though the fusion MLP's last layer starts at zero (no gradient through it on the first step)."""
-    torch.manual_seed(4)
-    planes = KPlanesConfig(base_resolution=(6, 6, 3), multipliers=(1, 2), time_resolution=4, features=4, extended=True)
-    field = KPlanesField(KPlanesFieldConfig(planes=planes, hidden=16, n_images=2, fuse_residual=True))
-    for p in field.encoding.time_planes():  # time and dynamic features away from 1: they must not matter yet
-        torch.nn.init.uniform_(p, 0.5, 1.5)
-    pts, times = torch.rand(40, 3) * 2 - 1, torch.rand(40)
-    x01 = field.normalise(pts)
-    f_s = []
-    for s in range(2):
-        prod = torch.ones(40, 4)
-        for k, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
-            prod = prod * sample_plane_reference(field.encoding.static_planes[3 * s + k], x01[:, a], x01[:, b])
-        f_s.append(prod)
-    by_hand = torch.exp(field.geo_mlp(torch.cat(f_s, dim=1))[:, 0] + field.config.density_bias)
-    torch.testing.assert_close(field.density(pts, times), by_hand, rtol=1e-5, atol=1e-7)
-
-    out = field(pts, times, image_idx=torch.zeros(40, dtype=torch.long), dynamic_gate=torch.zeros(40))
-    out["rgb"].sum().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in field.encoding.static_planes)
-    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in field.encoding.dynamic_planes)
-    assert KPlanesFieldConfig.from_json(field.config.to_json()) == field.config
