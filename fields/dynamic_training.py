@@ -164,9 +164,6 @@ class DynamicFitConfig:
     #: 3.3 m): 14 % fewer parameters, 15-16 % more steps in a budget, and held-out PSNR at 900 s 31.41 / 31.47
     #: dB against 29.30 / 30.71 for the whole box (seeds 2 / 3, same day; bench/RESULTS.md, Table III session 28)
     dynamic_height_m: float | None = 2.5
-    #: extended only: the dynamic spatial planes start constant (:class:`fields.kplanes.KPlanesConfig`
-    #: ``dynamic_init_constant``)
-    dynamic_init_constant: bool = False
     #: learn a time-smooth correction of the telemetry poses (:mod:`fields.pose_drift`) with one
     #: knot per this many seconds of flight (None: take the poses as given). Worth +0.85 / +2.44 dB
     #: held-out to extended K-Planes on the 80 / 300-frame bench flights, +0.18 / +0.05 dB to stock
@@ -251,7 +248,6 @@ def split(dd: DynamicFlightData, every: int) -> tuple[list[int], list[int]]:
 #: built model's description
 MODEL_OPTIONS = ("n_samples", "features", "hidden", "appearance_dim", "max_resolution", "cell_factor",
                  "init_optical_depth", "mask_init_background", "mask_encoding", "time_gate", "dynamic_height_m",
-                 "dynamic_init_constant",
                  "pose_knot_s", "pose_knot_coarse_s", "pose_per_frame", "pose_drift_on_sfm")
 
 
@@ -275,7 +271,7 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     z_top, why_layer = dynamic_layer_top(bounds, cfg.dynamic_height_m)
     fc = make_field_config(cfg.kind, bounds, sizing, dd.n, data.n, len(data.classes), cfg.features, cfg.hidden,
                            cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, gate, z_top,
-                           cfg.init_optical_depth, cfg.dynamic_init_constant)
+                           cfg.init_optical_depth)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     knots, coarse, why = pose_knots(dd, cfg)

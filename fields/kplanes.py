@@ -180,10 +180,6 @@ class KPlanesConfig:
     #: Above it a point is static: ``f_d`` = 0, mask values "static" (logit :data:`STATIC_LOGIT`), no
     #: gradient to the dynamic planes from it (``L_cos`` still reads their top row there). 1: the whole box
     dynamic_z_top: float = 1.0
-    #: extended only: the dynamic spatial planes start at the constant mid value of [init_low, init_high]
-    #: instead of uniform noise. Under the mask gate they learn only where people are; elsewhere the fusion
-    #: MLP reads their start values, which are then one constant instead of a fixed random pattern
-    dynamic_init_constant: bool = False
 
     def resolutions(self) -> list[tuple[int, int, int]]:
         return [tuple(int(r * m) for r in self.base_resolution) for m in self.multipliers]
@@ -238,9 +234,8 @@ class KPlanesEncoding(nn.Module):
             if config.extended:
                 for a, b in SPACE_PLANES:
                     self.static_planes.append(_plane(d, res[b], res[a], None, lo, hi))
-            start = 0.5 * (lo + hi) if config.extended and config.dynamic_init_constant else None
             for a, b in SPACE_PLANES:
-                self.dynamic_planes.append(_plane(d, dres[b], dres[a], start, lo, hi))
+                self.dynamic_planes.append(_plane(d, dres[b], dres[a], None, lo, hi))
             extra = 1 if config.extended else 0
             for a, _ in TIME_PLANES:
                 p = _plane(d + extra, T, dres[a], 1.0, lo, hi)

@@ -287,24 +287,3 @@ def test_a_faded_out_scale_gives_zero_features_and_no_gradient_to_its_planes(ext
     fine = enc.dynamic_planes[6:9] if not extended else list(enc.static_planes[3:]) + list(enc.dynamic_planes[6:9])
     assert all(p.grad is None or (p.grad == 0).all() for p in fine)
     assert enc.dynamic_planes[0].grad is not None and enc.dynamic_planes[0].grad.abs().sum() > 0
-
-
-@pytest.mark.parametrize("extended", [False, True])
-def test_constant_dynamic_start_gives_every_background_point_the_same_dynamic_features(extended):
-    """``dynamic_init_constant``: extended's dynamic spatial planes start at (init_low + init_high) / 2, so a fresh
-    field's ``f_d`` is the same at every point (time planes start at 1); its static planes still start as noise.
-    Stock K-Planes has no static planes and ignores the option."""
-    torch.manual_seed(5)
-    cfg = KPlanesConfig(base_resolution=(6, 6, 3), multipliers=(1, 2), time_resolution=4, features=4,
-                        extended=extended, dynamic_init_constant=True)
-    enc = KPlanesEncoding(cfg)
-    x, t = torch.rand(30, 3), torch.rand(30)
-    feats = enc(x, t)["features"]
-    if not extended:
-        assert feats.std(dim=0).min() > 0  # uniform noise as ever
-        return
-    d = cfg.features
-    f_d = torch.cat([feats[:, 2 * d * s + d: 2 * d * (s + 1)] for s in range(2)], dim=1)
-    torch.testing.assert_close(f_d, torch.full_like(f_d, 0.3 ** 3))
-    f_s = torch.cat([feats[:, 2 * d * s: 2 * d * s + d] for s in range(2)], dim=1)
-    assert f_s.std(dim=0).min() > 0
