@@ -438,10 +438,11 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
 
     occupancy = model.sampler_config.kind == "occupancy"  # the model's: a resume may have asked for another
     while step < main_iters and (main_budget is None or train_s < main_budget):
-        lr = cfg.lr * cfg.lr_final ** progress()
+        done = progress()
+        lr = cfg.lr * cfg.lr_final ** done
         for g in optim.param_groups:
             g["lr"] = lr * g.get("scale", 1.0)
-        box_rays = n_pos if progress() < cfg.mask_pos_until else 0
+        box_rays = n_pos if done < cfg.mask_pos_until else 0
         fi, pi = draw(train_t, cfg.batch_rays, box_rays)
         o, d = bank.rays(fi, pi)
         target = images[fi, pi].float() / 255.0
