@@ -377,7 +377,7 @@ def fit(data: FlightData, cfg: FitConfig, out_dir: Path | None = None, flight: P
     joint_mask = cfg.lambda_mask > 0 and (cfg.mask_joint or share == 0)
     n_pos = int(round(cfg.mask_pos_fraction * cfg.batch_rays)) if joint_mask and len(pos_frame) else 0
     iw = importance_weights(cfg.batch_rays, n_pos, len(train_idx) * hw, len(pos_frame), dev)
-    iw_uniform = torch.ones(2, device=dev)  # every ray drawn uniformly: no importance weighting
+    iw_uniform = importance_weights(cfg.batch_rays, 0, len(train_idx) * hw, len(pos_frame), dev)  # after mask_pos_until
     evals_s = sorted(eval_at_s or [])
     evals_i = sorted(eval_at_iters or [])
 
