@@ -202,14 +202,13 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
                       features: int = 16, hidden: int = 64, appearance_dim: int = 8,
                       mask_init_background: float | None = None, mask_encoding: str = "geometry",
                       time_gate: bool = False, dynamic_z_top: float = 1.0,
-                      init_optical_depth: float | None = None, xyt_hash_log2: int = 0,
+                      init_optical_depth: float | None = None,
                       mask_scales_dynamic: bool = False) -> KPlanesFieldConfig:
     """Field config for ``kind`` over the slab ``bounds``; time resolution = half the frames;
     ``time_gate``, ``mask_scales_dynamic``, ``dynamic_z_top``: see :class:`fields.kplanes.KPlanesConfig`
     (extended only).
     ``init_optical_depth``: the fresh field's optical depth along a vertical ray through the whole box
-    (:func:`density_bias_for`); None: the field's default density bias. ``xyt_hash_log2``: see
-    :class:`fields.kplanes.KPlanesFieldConfig` (0: no (x, y, t) hash grid)."""
+    (:func:`density_bias_for`); None: the field's default density bias."""
     from fields.dynamic_data import time_resolution
 
     planes = KPlanesConfig(base_resolution=sizing.base_resolution, multipliers=sizing.multipliers,
@@ -222,7 +221,7 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
     return KPlanesFieldConfig(aabb_lo=tuple(bounds.lo), aabb_hi=tuple(bounds.hi), planes=planes, hidden=hidden,
                               n_images=n_images, appearance_dim=appearance_dim, n_classes=n_classes,
                               mask_init_background=mask_init_background, mask_encoding=mask_encoding,
-                              density_bias=bias, xyt_hash_log2=xyt_hash_log2)
+                              density_bias=bias)
 
 
 def density_bias_for(optical_depth: float, lo_z: float, hi_z: float) -> float:

@@ -211,9 +211,6 @@ class DynamicFitConfig:
     #: extended on the 300-frame telemetry flight, 900 s: seed 0 23.68 dB (27.44 without), seed 1 27.20 (25.64):
     #: it moves which seed's pose knots fail to line the frames up, no cure (bench/RESULTS.md, Table III session 16)
     coarse_to_fine: float = 0.0
-    #: both kinds: log2 of the table size per level of a hash grid over (x, y, t) beside the planes (0: none;
-    #: :class:`fields.kplanes.KPlanesFieldConfig` ``xyt_hash_log2``)
-    xyt_hash_log2: int = 0
     checkpoint_every_s: float = 60.0
     log_every_s: float = 10.0
 
@@ -254,7 +251,7 @@ def split(dd: DynamicFlightData, every: int) -> tuple[list[int], list[int]]:
 #: built model's description
 MODEL_OPTIONS = ("n_samples", "features", "hidden", "appearance_dim", "max_resolution", "cell_factor",
                  "init_optical_depth", "mask_init_background", "mask_encoding", "time_gate", "dynamic_height_m",
-                 "pose_knot_s", "pose_knot_coarse_s", "pose_per_frame", "pose_drift_on_sfm", "xyt_hash_log2",
+                 "pose_knot_s", "pose_knot_coarse_s", "pose_per_frame", "pose_drift_on_sfm",
                  "mask_scales_dynamic")
 
 
@@ -278,7 +275,7 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     z_top, why_layer = dynamic_layer_top(bounds, cfg.dynamic_height_m)
     fc = make_field_config(cfg.kind, bounds, sizing, dd.n, data.n, len(data.classes), cfg.features, cfg.hidden,
                            cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, gate, z_top,
-                           cfg.init_optical_depth, cfg.xyt_hash_log2, cfg.mask_scales_dynamic)
+                           cfg.init_optical_depth, mask_scales_dynamic=cfg.mask_scales_dynamic)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     knots, coarse, why = pose_knots(dd, cfg)

@@ -37,7 +37,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from fields.encodings import HashGrid, HashGridConfig, geometric_resolutions
 from fields.field import init_background_bias
 
 #: coordinate index pairs of the spatial planes (x=0, y=1, z=2) and the time planes (t=3)
@@ -523,15 +522,6 @@ class KPlanesEncoding(nn.Module):
         return l1
 
 
-def xyt_resolutions(planes: KPlanesConfig, levels: int) -> list[tuple[int, int, int]]:
-    """Cells per level along (x, y, t) of the (x, y, t) hash grid: from 1/16 of the finest dynamic
-    plane's cells in x, y and 1/5 of the time planes' (at least 2) up to as fine as those planes."""
-    rx, ry, _ = planes.dynamic_resolutions()[-1]
-    finest = (max(2, rx - 1), max(2, ry - 1), max(2, planes.time_resolution - 1))
-    coarsest = tuple(max(2, round(f / k)) for f, k in zip(finest, (16, 16, 5), strict=True))
-    return geometric_resolutions(coarsest, finest, levels)
-
-
 @dataclass
 class KPlanesFieldConfig:
     aabb_lo: tuple[float, float, float] = (-1.0, -1.0, -1.0)
@@ -555,12 +545,6 @@ class KPlanesFieldConfig:
     mask_encoding: str = "geometry"
     mask_features: int = 4
     mask_multipliers: tuple[int, ...] = (2, 4)
-    #: a hash grid over (x, y, t) beside the planes, log2 of its table size per level (0: none): each
-    #: walker gets cells of its own, which a product of planes shared along lines cannot give
-    #: (``bench/kplanes_capacity.py --xyt-hash``). Extended: part of the dynamic branch (zero above the
-    #: dynamic layer, its gradients gated as the dynamic planes'); stock: beside its planes
-    xyt_hash_log2: int = 0
-    xyt_hash_levels: int = 8
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -593,11 +577,6 @@ class KPlanesField(nn.Module):
         self.encoding = KPlanesEncoding(config.planes)
         h, d = config.hidden, config.planes.features
         enc_dim = self.encoding.out_dim
-        self.xyt = None
-        if config.xyt_hash_log2 > 0:
-            self.xyt = HashGrid(HashGridConfig(resolutions=xyt_resolutions(config.planes, config.xyt_hash_levels),
-                                               features=2, log2_table=config.xyt_hash_log2))
-            enc_dim += self.xyt.out_dim
         if config.planes.extended:
             # fuse f_s, f_d and the mask values into one D-dim feature, as the paper does
             self.fuse = nn.Sequential(nn.Linear(enc_dim, h), nn.ReLU(), nn.Linear(h, d * self.encoding.n_scales))
@@ -642,28 +621,11 @@ class KPlanesField(nn.Module):
         inside = ((x01 >= 0) & (x01 <= 1)).all(dim=-1)
         enc = self.encoding(x01, times01, dynamic_gate, space_points)
         feat = enc["features"]
-        if self.xyt is not None:
-            feat = torch.cat([feat, self._xyt_features(x01, times01, dynamic_gate)], dim=-1)
         if self.config.planes.extended:
             feat = self.fuse(feat)
         hgeo = self.geo_mlp(feat).float()
         sigma = torch.exp(torch.clamp(hgeo[:, 0] + self.config.density_bias, max=15.0)) * inside
         return x01, enc, sigma, hgeo[:, 1:]
-
-    def _xyt_features(self, x01: torch.Tensor, times01: torch.Tensor,
-                      dynamic_gate: torch.Tensor | None) -> torch.Tensor:
-        """The (x, y, t) hash grid's features (N, levels x 2) at normalised points ``x01`` (N, 3) and times
-        (N,). Extended: zero above the dynamic layer, and only ``dynamic_gate``-weighted gradients reach
-        the grid (box pixels move it, as they move the dynamic planes)."""
-        xyt = torch.cat([x01[:, :2].float(), times01.float().reshape(-1, 1)], dim=1).clamp(0.0, 1.0)
-        planes = self.config.planes
-        if not planes.extended:
-            return self.xyt(xyt)
-        rows = (x01[:, 2].float().clamp(0.0, 1.0) <= planes.layer_top()).nonzero().squeeze(1)
-        h = self.xyt(xyt[rows])
-        if dynamic_gate is not None:
-            h = gate_grad(h, dynamic_gate.reshape(-1, 1)[rows].to(h.dtype))
-        return h.new_zeros(x01.shape[0], h.shape[1]).index_copy(0, rows, h)
 
     def density(self, points: torch.Tensor, times01: torch.Tensor) -> torch.Tensor:
         """Density (1/m) alone at world points (N,3) and times (N,): no colour or mask heads, and

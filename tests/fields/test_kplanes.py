@@ -15,7 +15,6 @@ from fields.kplanes import (
     gate_grad,
     sample_plane,
     sample_plane_reference,
-    xyt_resolutions,
 )
 
 
@@ -314,46 +313,3 @@ def test_a_faded_out_scale_gives_zero_features_and_no_gradient_to_its_planes(ext
     fine = enc.dynamic_planes[6:9] if not extended else list(enc.static_planes[3:]) + list(enc.dynamic_planes[6:9])
     assert all(p.grad is None or (p.grad == 0).all() for p in fine)
     assert enc.dynamic_planes[0].grad is not None and enc.dynamic_planes[0].grad.abs().sum() > 0
-
-
-def test_xyt_resolutions_run_from_coarse_to_the_dynamic_planes_cells():
-    planes = KPlanesConfig(base_resolution=(40, 30, 8), multipliers=(1, 4), time_resolution=40)
-    levels = xyt_resolutions(planes, 4)
-    assert levels[0] == (10, 7, 8) and levels[-1] == (159, 119, 39)  # 160 x 120 grid points, 40 instants
-    assert all(a <= b for lo, hi in zip(levels[:-1], levels[1:], strict=True) for a, b in zip(lo, hi, strict=True))
-    tiny = xyt_resolutions(KPlanesConfig(base_resolution=(2, 2, 2), multipliers=(1,), time_resolution=1), 3)
-    assert all(min(r) >= 2 for r in tiny)
-
-
-@pytest.mark.parametrize("extended", [False, True])
-def test_the_xyt_hash_grid_reads_x_y_t_and_in_extended_only_the_dynamic_layer_under_the_gate(extended):
-    """The (x, y, t) grid's features depend on x, y and t but not z; extended: zero above the dynamic layer
-    (z01 > 0.5 here), and a gate of 0 keeps the static rows' gradients out of the grid."""
-    torch.manual_seed(3)
-    cfg = KPlanesFieldConfig(planes=KPlanesConfig(base_resolution=(6, 6, 4), multipliers=(1, 2), time_resolution=6,
-                                                  features=4, extended=extended, dynamic_z_top=0.5),
-                             hidden=16, n_images=1, xyt_hash_log2=8, xyt_hash_levels=3)
-    field = KPlanesField(cfg)
-    with torch.no_grad():
-        field.xyt.table.uniform_(-1.0, 1.0)
-    x01 = torch.tensor([[0.2, 0.3, 0.1], [0.2, 0.3, 0.4], [0.7, 0.6, 0.9], [0.7, 0.6, 0.2]])
-    times = torch.tensor([0.25, 0.25, 0.5, 0.5])
-    gate = torch.tensor([1.0, 0.0, 1.0, 0.0])
-    h = field._xyt_features(x01, times, gate)
-    assert h.shape == (4, 6)
-    assert torch.equal(h[0], h[1])  # same x, y, t at another height
-    assert not torch.equal(h[0], field._xyt_features(x01[:1], torch.tensor([0.75]), None)[0])  # t matters
-    if extended:
-        assert torch.equal(h[2], torch.zeros(6))  # above the layer
-        h.sum().backward()
-        gated = field.xyt.table.grad.clone()
-        field.zero_grad()
-        field._xyt_features(x01[:1], times[:1], None).sum().backward()
-        assert torch.equal(gated, field.xyt.table.grad)  # the gated-in row's gradient alone
-        assert gated.abs().sum() > 0
-    else:
-        assert torch.isfinite(h).all() and h[2].abs().sum() > 0
-    pts = x01 * 2 - 1  # the field's box is [-1, 1]^3
-    out = field(pts, times, image_idx=torch.zeros(4, dtype=torch.long), dynamic_gate=gate if extended else None)
-    assert torch.isfinite(out["sigma"]).all() and torch.isfinite(out["rgb"]).all()
-    assert KPlanesFieldConfig.from_json(cfg.to_json()) == cfg
