@@ -184,12 +184,6 @@ class KPlanesConfig:
     #: and a plane is shared along a line (xz: every y), so without this every walker's x and y lines carry
     #: dynamic features across the static background
     mask_scales_dynamic: bool = False
-    #: extended only: the fusion MLP reads the three mask values (the paper); False: zeros in their place
-    #: (the mask channel then acts on the features through ``time_gate`` / ``mask_scales_dynamic`` only).
-    #: A time plane's mask channel is shared along a line (xt: every y), so where a walker's line crosses
-    #: the static background at instant t the fusion reads a raised mask value there, and under the gated
-    #: gradients no background pixel can lower it through the colour loss
-    fuse_mask_values: bool = True
     #: extended only: the dynamic planes span the normalised heights [0, ``dynamic_z_top``] of the box, the
     #: layer people walk in, with their z resolution cut to match (cells as tall as the static planes').
     #: Above it a point is static: ``f_d`` = 0, mask values "static" (logit :data:`STATIC_LOGIT`), no
@@ -345,11 +339,6 @@ class KPlanesEncoding(nn.Module):
         return ([torch.where(inside, m, STATIC_LOGIT) for m in values],
                 [torch.where(inside, m, 0.0) for m in fusion_inputs])
 
-    def _fused_masks(self, mask_feats: list[torch.Tensor]) -> list[torch.Tensor]:
-        """The mask rows (each (1, N)) the fusion reads: as they are, or zeros without
-        :attr:`KPlanesConfig.fuse_mask_values`."""
-        return mask_feats if self.config.fuse_mask_values else [torch.zeros_like(m) for m in mask_feats]
-
     def _forward_gated(self, coords: torch.Tensor, dynamic_gate: torch.Tensor | None) -> dict:
         """Every plane sampled at every point; the gate scales gradients afterwards (:func:`gate_grad`)."""
         x = coords[:, :3]
@@ -401,7 +390,7 @@ class KPlanesEncoding(nn.Module):
             # must not move it either (its own box supervision reads ``mask_values``, ungated)
             g = dynamic_gate.reshape(1, -1).to(x.dtype)
             mask_feats = [gate_grad(m, g) for m in layer_masks]
-        out = {"features": torch.cat(feats + self._fused_masks(mask_feats), dim=0).t()}
+        out = {"features": torch.cat(feats + mask_feats, dim=0).t()}
         if self.config.extended:
             out["mask_values"] = torch.cat(masks, dim=0).t()
             out["static_space"] = stat_space
@@ -502,8 +491,7 @@ class KPlanesEncoding(nn.Module):
             if in_g is not None:
                 dyn_g = torch.where(in_g, dyn_g, 0.0)
             feats += [stat, torch.cat([gate_grad(dyn_g[:, :n_a], g_a), dyn_n, dyn_g[:, n_a:]], dim=1)]
-        features = torch.cat(feats + self._fused_masks(mask_feats), dim=0).t()
-        mask_values = torch.cat(masks, dim=0).t()
+        features, mask_values = torch.cat(feats + mask_feats, dim=0).t(), torch.cat(masks, dim=0).t()
         if inv is not None:
             features, mask_values = features[inv], mask_values[inv]
         return {"features": features, "mask_values": mask_values, "static_space": stat_space,

@@ -165,36 +165,18 @@ def test_mask_scaled_dynamic_features_hand_values():
     assert all(p.grad[:, :1].abs().sum() > 0 for p in enc.dynamic_planes[3:])
 
 
-def test_without_fused_mask_values_the_fusion_reads_zeros_and_the_mask_learns_from_its_own_loss_only():
-    torch.manual_seed(4)
-    kw = dict(base_resolution=(4, 4, 3), multipliers=(1, 2), time_resolution=5, features=2, extended=True)
-    enc, plain = KPlanesEncoding(KPlanesConfig(**kw, fuse_mask_values=False)), KPlanesEncoding(KPlanesConfig(**kw))
-    with torch.no_grad():
-        for p in enc.dynamic_planes[3:6]:
-            p[:, 2:] = torch.randn_like(p[:, 2:])  # mask channels away from their start
-    plain.load_state_dict(enc.state_dict())
-    x, t = torch.rand(20, 3), torch.rand(20)
-    out, ref = enc(x, t), plain(x, t)
-    assert torch.equal(out["features"][:, :8], ref["features"][:, :8])  # f_s, f_d of both scales
-    assert torch.equal(out["features"][:, 8:], torch.zeros(20, 6)) and ref["features"][:, 8:].abs().sum() > 0
-    assert torch.equal(out["mask_values"], ref["mask_values"])
-    out["features"].sum().backward()
-    assert all(p.grad[:, 2:].abs().sum() == 0 for p in enc.dynamic_planes[3:6])
-
-
 @pytest.mark.parametrize("z_top", [1.0, 0.45])
-@pytest.mark.parametrize("time_gate,scale,fuse", [(False, False, True), (True, False, True), (False, True, True),
-                                                  (False, False, False)])
+@pytest.mark.parametrize("time_gate,scale", [(False, False), (True, False), (False, True)])
 @pytest.mark.parametrize("pattern,space_points", [("mixed", 24), ("mixed", None), ("mixed", 0), ("static", 24),
                                                   ("dynamic", 24), ("mixed", 1000), ("runs", 24), ("runs", 0)])
-def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, time_gate, scale, fuse, z_top):
+def test_split_sampling_under_a_hard_gate_equals_gating(pattern, space_points, time_gate, scale, z_top):
     """The fast path (planes sampled with autograd only where the gate lets gradients through) gives the
     values and the gradients of planes and coordinates that gating every sample gives, whether the points
     come in any order ("mixed": permuted and back) or already in its runs ("runs": the space points,
     then static, then dynamic ones, as the trainer orders its rays with ``gate_ray_runs``; used in place)."""
     torch.manual_seed(3)
     cfg = KPlanesConfig(base_resolution=(5, 4, 3), multipliers=(1, 2), time_resolution=6, features=3, extended=True,
-                        time_gate=time_gate, mask_scales_dynamic=scale, fuse_mask_values=fuse, dynamic_z_top=z_top)
+                        time_gate=time_gate, mask_scales_dynamic=scale, dynamic_z_top=z_top)
     enc = KPlanesEncoding(cfg)
     with torch.no_grad():
         for p in enc.dynamic_planes:  # time planes away from their initial 1 / 0, so every gradient is non-trivial
