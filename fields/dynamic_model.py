@@ -202,11 +202,9 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
                       features: int = 16, hidden: int = 64, appearance_dim: int = 8,
                       mask_init_background: float | None = None, mask_encoding: str = "geometry",
                       time_gate: bool = False, dynamic_z_top: float = 1.0,
-                      init_optical_depth: float | None = None,
-                      mask_scales_dynamic: bool = False) -> KPlanesFieldConfig:
+                      init_optical_depth: float | None = None) -> KPlanesFieldConfig:
     """Field config for ``kind`` over the slab ``bounds``; time resolution = half the frames;
-    ``time_gate``, ``mask_scales_dynamic``, ``dynamic_z_top``: see :class:`fields.kplanes.KPlanesConfig`
-    (extended only).
+    ``time_gate``, ``dynamic_z_top``: see :class:`fields.kplanes.KPlanesConfig` (extended only).
     ``init_optical_depth``: the fresh field's optical depth along a vertical ray through the whole box
     (:func:`density_bias_for`); None: the field's default density bias."""
     from fields.dynamic_data import time_resolution
@@ -214,7 +212,6 @@ def make_field_config(kind: str, bounds, sizing: PlaneSizing, n_frames: int, n_i
     planes = KPlanesConfig(base_resolution=sizing.base_resolution, multipliers=sizing.multipliers,
                            time_resolution=time_resolution(n_frames), features=features,
                            extended=(kind == "kplanes-ext"), time_gate=time_gate and kind == "kplanes-ext",
-                           mask_scales_dynamic=mask_scales_dynamic and kind == "kplanes-ext",
                            dynamic_z_top=dynamic_z_top if kind == "kplanes-ext" else 1.0)
     bias = (KPlanesFieldConfig.density_bias if init_optical_depth is None
             else density_bias_for(init_optical_depth, bounds.lo[2], bounds.hi[2]))

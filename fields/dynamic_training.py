@@ -162,9 +162,6 @@ class DynamicFitConfig:
     #: the pose-drift knots; without them +0.32 dB)
     #: (bench/RESULTS.md, Table III session 11)
     time_gate: bool | None = None
-    #: extended only: ``f_d`` times the point's dynamic probability (:class:`fields.kplanes.KPlanesConfig`
-    #: ``mask_scales_dynamic``)
-    mask_scales_dynamic: bool = False
     #: extended only: the dynamic planes cover the layer from the ground up to this height, metres (people
     #: stand up to ~1.9 m); above it the field is static (:class:`fields.kplanes.KPlanesConfig`
     #: ``dynamic_z_top``). None: the whole box. On the 300-frame SfM flight (a 16.6 m box, the layer its lowest
@@ -255,8 +252,7 @@ def split(dd: DynamicFlightData, every: int) -> tuple[list[int], list[int]]:
 #: built model's description
 MODEL_OPTIONS = ("n_samples", "features", "hidden", "appearance_dim", "max_resolution", "cell_factor",
                  "init_optical_depth", "mask_init_background", "mask_encoding", "time_gate", "dynamic_height_m",
-                 "pose_knot_s", "pose_knot_coarse_s", "pose_per_frame", "pose_drift_on_sfm",
-                 "mask_scales_dynamic")
+                 "pose_knot_s", "pose_knot_coarse_s", "pose_per_frame", "pose_drift_on_sfm")
 
 
 def options_the_checkpoint_overrides(saved: dict, cfg: DynamicFitConfig) -> dict[str, tuple]:
@@ -279,7 +275,7 @@ def build_model(dd: DynamicFlightData, train_idx: list[int], cfg: DynamicFitConf
     z_top, why_layer = dynamic_layer_top(bounds, cfg.dynamic_height_m)
     fc = make_field_config(cfg.kind, bounds, sizing, dd.n, data.n, len(data.classes), cfg.features, cfg.hidden,
                            cfg.appearance_dim, cfg.mask_init_background, cfg.mask_encoding, gate, z_top,
-                           cfg.init_optical_depth, mask_scales_dynamic=cfg.mask_scales_dynamic)
+                           cfg.init_optical_depth)
     ext = np.asarray(bounds.extent)
     radius = 0.5 * float(np.hypot(ext[0], ext[1]))
     knots, coarse, why = pose_knots(dd, cfg)

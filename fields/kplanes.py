@@ -93,13 +93,10 @@ def _time_gate_prob(masks: list[torch.Tensor]) -> torch.Tensor:
     return torch.sigmoid(torch.cat(masks, dim=0).mean(dim=0, keepdim=True)).detach()
 
 
-def _dynamic_features(dyn: torch.Tensor, times: torch.Tensor | None, p: torch.Tensor | None,
-                      scale_by_p: bool = False) -> torch.Tensor:
+def _dynamic_features(dyn: torch.Tensor, times: torch.Tensor | None, p: torch.Tensor | None) -> torch.Tensor:
     """``f_d`` of one scale: ``dyn`` already holds the whole product without the time gate
-    (``times`` None); with it, ``dyn`` is ``S_d`` and ``times`` is ``T_d``: ``S_d * (1 + p * (T_d - 1))``.
-    ``scale_by_p``: that times ``p`` (:attr:`KPlanesConfig.mask_scales_dynamic`)."""
-    f = dyn if times is None else dyn * (1.0 + p * (times - 1.0))
-    return f * p if scale_by_p else f
+    (``times`` None); with it, ``dyn`` is ``S_d`` and ``times`` is ``T_d``: ``S_d * (1 + p * (T_d - 1))``."""
+    return dyn if times is None else dyn * (1.0 + p * (times - 1.0))
 
 
 def _spread(x: torch.Tensor | None, keep: torch.Tensor | None, width: int) -> torch.Tensor | None:
@@ -178,12 +175,6 @@ class KPlanesConfig:
     #: time planes. Where nobody walks (p -> 0) ``f_d`` is the time-invariant ``S_d``, not a pattern that
     #: a time plane, shared along a line, picks up from every person's rays at that instant.
     time_gate: bool = False
-    #: extended only: ``f_d`` times the point's dynamic probability ``p`` (as for ``time_gate``), so that
-    #: where the mask says nobody is, the fusion reads no dynamic feature at all. Under the paper's gated
-    #: gradients a background pixel cannot correct what the people's rays wrote into the dynamic planes,
-    #: and a plane is shared along a line (xz: every y), so without this every walker's x and y lines carry
-    #: dynamic features across the static background
-    mask_scales_dynamic: bool = False
     #: extended only: the dynamic planes span the normalised heights [0, ``dynamic_z_top``] of the box, the
     #: layer people walk in, with their z resolution cut to match (cells as tall as the static planes').
     #: Above it a point is static: ``f_d`` = 0, mask values "static" (logit :data:`STATIC_LOGIT`), no
@@ -370,9 +361,8 @@ class KPlanesEncoding(nn.Module):
                     stat = f if stat is None else stat * f
                 stats.append(stat)
         masks, layer_masks = self._outside_layer(masks, masks, inside)
-        scale = self.config.extended and self.config.mask_scales_dynamic
-        p = _time_gate_prob(masks) if time_gate or scale else None
-        dyns = [_dynamic_features(dyn, times, p, scale) for dyn, times in dyn_parts]
+        p = _time_gate_prob(masks) if time_gate else None
+        dyns = [_dynamic_features(dyn, times, p) for dyn, times in dyn_parts]
         if inside is not None:
             dyns = [torch.where(inside, f, 0.0) for f in dyns]
         if self.config.extended:
@@ -482,12 +472,11 @@ class KPlanesEncoding(nn.Module):
         # above the layer B and C columns are zeros already (:func:`_spread`); A was read whole: zero it there
         in_g = None if inside is None else torch.cat([inside[:, :n_a], inside[:, end_b:]], dim=1)
         p_n = p_g = None
-        scale = self.config.mask_scales_dynamic
-        if time_gate or scale:
+        if time_gate:
             p = _time_gate_prob(masks)  # (1, n) in run order A, B, C
             p_n, p_g = p[:, n_a:end_b], torch.cat([p[:, :n_a], p[:, end_b:]], dim=1)
         for stat, (dyn_g, dyn_n, time_g, time_n) in zip(stat_parts, dyn_parts, strict=True):
-            dyn_g, dyn_n = _dynamic_features(dyn_g, time_g, p_g, scale), _dynamic_features(dyn_n, time_n, p_n, scale)
+            dyn_g, dyn_n = _dynamic_features(dyn_g, time_g, p_g), _dynamic_features(dyn_n, time_n, p_n)
             if in_g is not None:
                 dyn_g = torch.where(in_g, dyn_g, 0.0)
             feats += [stat, torch.cat([gate_grad(dyn_g[:, :n_a], g_a), dyn_n, dyn_g[:, n_a:]], dim=1)]
