@@ -109,10 +109,6 @@ class DynamicFitConfig:
     lambda_time_smooth: float = 1e-3
     lambda_time_l1: float = 1e-4
     lambda_dynamic: float = 0.05
-    #: the time-plane mask BCE importance-weighted like every per-ray loss (the uniform objective, where box
-    #: pixels are ~2 % of a frame); False: each drawn ray alike, so the box rays (``box_ray_fraction`` of a
-    #: batch) weigh as much as they are drawn
-    dynamic_bce_weighted: bool = True
     #: weight of L_cos (1e-2 slowed learning: 18.1 vs 19.7 dB train PSNR after 150 steps, 256 rays)
     lambda_cos: float = 1e-4
     #: ``L_cos`` is estimated on the batch's first this-many samples (whole random rays)
@@ -571,8 +567,7 @@ def fit_dynamic(dd: DynamicFlightData, cfg: DynamicFitConfig, out_dir: Path | No
             loss = loss + cfg.lambda_mask * (nll * fg_w[tgt] * mask_w[m_ok]).mean()
         if ext and cfg.lambda_dynamic > 0 and m_ok.any():
             p = res["dynamic_prob"][m_ok].clamp(1e-5, 1 - 1e-5)
-            w_dyn = mask_w[m_ok] if cfg.dynamic_bce_weighted else None
-            loss = loss + cfg.lambda_dynamic * F.binary_cross_entropy(p, dyn[m_ok], weight=w_dyn)
+            loss = loss + cfg.lambda_dynamic * F.binary_cross_entropy(p, dyn[m_ok], weight=mask_w[m_ok])
         if ext and cfg.lambda_cos > 0:
             # the first ``cos_points`` samples = whole rays from the front of a batch of random rays
             # (random indexing of the 18 strided feature tensors cost ~5 % of a step)
